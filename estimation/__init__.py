@@ -1,0 +1,1 @@
+"""estimation: the shared PoseGraph, estimators and consistency tools."""

@@ -1,0 +1,69 @@
+"""Consistency statistics: NEES, NIS and their chi-square acceptance bounds.
+
+Errors are tangent vectors in GTSAM's order [rotation, translation] when poses are
+involved (``T_est.localCoordinates(T_true)`` or ``Logmap``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+
+def nees(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
+    """Normalised estimation error squared e^T P^-1 e for each row of ``errors``.
+
+    ``errors`` is (..., n) and ``covariances`` (..., n, n); NIS is the same formula
+    with the innovation and its covariance S.
+    """
+    errors = np.asarray(errors, dtype=float)
+    covariances = np.asarray(covariances, dtype=float)
+    solved = np.linalg.solve(covariances, errors[..., None])[..., 0]
+    return np.einsum("...i,...i->...", errors, solved)
+
+
+nis = nees
+
+
+def chi2_bounds(dof: int, n_runs: int = 1, alpha: float = 0.05) -> tuple[float, float]:
+    """Two-sided (1 - alpha) bounds for the mean of ``n_runs`` NEES values of ``dof`` each.
+
+    n_runs * mean(NEES) ~ chi2(n_runs * dof) for a consistent estimator
+    (Bar-Shalom, Li, Kirubarajan, "Estimation with Applications to Tracking", 5.4.2).
+    """
+    total = dof * n_runs
+    lower = stats.chi2.ppf(alpha / 2, total) / n_runs
+    upper = stats.chi2.ppf(1 - alpha / 2, total) / n_runs
+    return float(lower), float(upper)
+
+
+@dataclass(frozen=True)
+class ConsistencyCheck:
+    """The outcome of a NEES/NIS check over Monte Carlo runs."""
+
+    mean: float            # mean NEES over every run (and step)
+    lower: float           # two-sided chi-square bounds for that mean
+    upper: float
+    fraction_inside: float  # share of steps whose across-run mean lies inside its bounds
+    passed: bool
+
+
+def check_consistency(values: np.ndarray, dof: int, alpha: float = 0.05,
+                      min_fraction: float = 0.9) -> ConsistencyCheck:
+    """Check NEES (or NIS) values of shape (n_runs,) or (n_runs, n_steps) against chi-square.
+
+    For (n_runs, n_steps), each step's mean over runs is tested against its bounds and the
+    check passes when at least ``min_fraction`` of the steps are inside; for a single step
+    the mean itself must be inside.
+    """
+    values = np.asarray(values, dtype=float)
+    if values.ndim == 1:
+        values = values[:, None]
+    n_runs = values.shape[0]
+    lower, upper = chi2_bounds(dof, n_runs, alpha)
+    step_means = values.mean(axis=0)
+    inside = (step_means >= lower) & (step_means <= upper)
+    fraction = float(inside.mean())
+    passed = fraction >= min_fraction if values.shape[1] > 1 else bool(inside[0])
+    return ConsistencyCheck(float(values.mean()), lower, upper, fraction, passed)

@@ -1,0 +1,1 @@
+"""mapping: an OctoMap-equivalent probabilistic octree."""

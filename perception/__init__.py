@@ -1,0 +1,1 @@
+"""perception: images, depth and clouds -> lines, vanishing points, clouds, odometry."""

@@ -1,0 +1,1 @@
+"""Composition of perception, estimation and mapping: the pipelines and the ``octofactor`` CLI."""
