@@ -1,0 +1,443 @@
+"""PoseGraph files: TUM trajectories, g2o (via GTSAM, 3-D) and OctoMap ScanGraph ``.graph``.
+
+Every reader raises :class:`~estimation.errors.FormatError` naming the file and the line
+or byte offset; every writer writes a temporary file and renames it.
+
+Quaternion orders: TUM lines are ``t tx ty tz qx qy qz qw`` (x y z w); g2o ``VERTEX_SE3:QUAT``
+is ``x y z qx qy qz qw``; OctoMap ``.graph`` stores ``qw qx qy qz`` (w first).
+"""
+from __future__ import annotations
+
+import math
+import os
+import struct
+from dataclasses import dataclass
+from pathlib import Path
+
+import gtsam
+import numpy as np
+
+from .errors import FormatError, OctofactorError
+from .fileio import BinaryReader, atomic_write
+from .pose_graph import PoseGraph, Scan, node_key
+
+PathLike = str | os.PathLike
+
+
+def pose_from_tum(values: np.ndarray) -> gtsam.Pose3:
+    """Pose3 from ``tx ty tz qx qy qz qw`` (TUM order, x y z w)."""
+    tx, ty, tz, qx, qy, qz, qw = (float(v) for v in values)
+    return gtsam.Pose3(gtsam.Rot3.Quaternion(qw, qx, qy, qz), np.array([tx, ty, tz]))
+
+
+def pose_to_tum(pose: gtsam.Pose3) -> np.ndarray:
+    """``tx ty tz qx qy qz qw`` (TUM order, x y z w) of a Pose3."""
+    q = pose.rotation().toQuaternion()
+    t = pose.translation()
+    return np.array([t[0], t[1], t[2], q.x(), q.y(), q.z(), q.w()])
+
+
+def _parse_float_line(path: PathLike, line_no: int, tokens: list[str], count: int,
+                      what: str) -> np.ndarray:
+    if len(tokens) != count:
+        raise FormatError(path, f"{what}: expected {count} numbers, found {len(tokens)}",
+                          line=line_no)
+    try:
+        values = np.array([float(token) for token in tokens])
+    except ValueError as exc:
+        raise FormatError(path, f"{what}: {exc}", line=line_no) from None
+    if not np.all(np.isfinite(values)):
+        raise FormatError(path, f"{what}: NaN or inf value", line=line_no)
+    return values
+
+
+def _check_quaternion(path: PathLike, line_no: int, q: np.ndarray) -> None:
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > 1e-3:
+        raise FormatError(path, f"quaternion norm is {norm:.6g}, not 1", line=line_no)
+
+
+# ---------------------------------------------------------------- TUM
+def read_tum(path: PathLike) -> PoseGraph:
+    """Read a TUM trajectory (``t tx ty tz qx qy qz qw`` per line) into a PoseGraph.
+
+    Nodes get ids 0..N-1 in file order and no factors. ``#`` lines and blank lines are
+    skipped; commas are accepted as separators.
+    """
+    graph = PoseGraph()
+    with open(path, encoding="utf-8", errors="replace") as handle:
+        for line_no, line in enumerate(handle, 1):
+            text = line.strip()
+            if not text or text.startswith("#"):
+                continue
+            values = _parse_float_line(path, line_no, text.replace(",", " ").split(), 8,
+                                       "TUM pose line 't tx ty tz qx qy qz qw'")
+            _check_quaternion(path, line_no, values[4:8])
+            graph.add_node(len(graph.nodes), pose_from_tum(values[1:]), timestamp=values[0])
+    if not graph.nodes:
+        raise FormatError(path, "no poses found in TUM trajectory")
+    return graph
+
+
+def format_tum_line(timestamp: float, pose: gtsam.Pose3) -> str:
+    """One TUM line; numbers in shortest round-trip form, so nothing is truncated."""
+    return " ".join(repr(float(v)) for v in (timestamp, *pose_to_tum(pose)))
+
+
+def write_tum(path: PathLike, graph: PoseGraph) -> None:
+    """Write the node poses as a TUM trajectory in node-id order."""
+    with atomic_write(path, "w") as handle:
+        handle.write("# timestamp tx ty tz qx qy qz qw\n")
+        for node_id in graph.sorted_ids():
+            node = graph.nodes[node_id]
+            handle.write(format_tum_line(node.timestamp, node.pose) + "\n")
+
+
+# ---------------------------------------------------------------- g2o
+_G2O_TOKENS = {"VERTEX_SE3:QUAT": 9, "EDGE_SE3:QUAT": 31, "FIX": None}
+
+
+def _validate_g2o(path: PathLike) -> None:
+    """Check every line GTSAM will read, so errors name the line (GTSAM's do not)."""
+    seen_vertex = set()
+    count = 0
+    with open(path, encoding="utf-8", errors="replace") as handle:
+        for line_no, line in enumerate(handle, 1):
+            tokens = line.split()
+            if not tokens or tokens[0].startswith("#"):
+                continue
+            tag = tokens[0]
+            if tag in ("VERTEX_SE2", "EDGE_SE2"):
+                raise FormatError(path, f"{tag} is a 2-D element; octofactor reads 3-D g2o files",
+                                  line=line_no)
+            if tag not in _G2O_TOKENS:
+                continue  # GTSAM skips unknown tags too
+            expected = _G2O_TOKENS[tag]
+            if expected is None:
+                continue
+            values = _parse_float_line(path, line_no, tokens[1:], expected - 1, tag)
+            if tag == "VERTEX_SE3:QUAT":
+                _check_quaternion(path, line_no, values[4:8])
+                if values[0] < 0 or values[0] != int(values[0]):
+                    raise FormatError(path, f"bad vertex id {tokens[1]}", line=line_no)
+                seen_vertex.add(int(values[0]))
+            else:
+                _check_quaternion(path, line_no, values[5:9])
+                info = np.zeros((6, 6))
+                info[np.triu_indices(6)] = values[9:]
+                info = info + np.triu(info, 1).T
+                try:
+                    np.linalg.cholesky(info)
+                except np.linalg.LinAlgError:
+                    raise FormatError(path, "edge information matrix is not positive definite",
+                                      line=line_no) from None
+                for vertex in values[:2]:
+                    if int(vertex) not in seen_vertex:
+                        raise FormatError(path, f"edge refers to vertex {int(vertex)} "
+                                          "not defined before it", line=line_no)
+            count += 1
+    if count == 0:
+        raise FormatError(path, "no VERTEX_SE3:QUAT or EDGE_SE3:QUAT lines (not a 3-D g2o file)")
+
+
+def read_g2o(path: PathLike) -> PoseGraph:
+    """Read a 3-D g2o file with ``gtsam.readG2o(path, is3D=True)``.
+
+    (Without ``is3D=True`` GTSAM silently returns an empty graph for a 3-D file.) GTSAM
+    reorders g2o's information from [t, R] to the Pose3 tangent [R, t]. Edges between
+    consecutive ids become ``odometry`` factors, the others ``loop`` factors.
+    """
+    path = Path(path)
+    _validate_g2o(path)
+    try:
+        factor_graph, initial = gtsam.readG2o(str(path), True)
+    except RuntimeError as exc:
+        raise FormatError(path, f"GTSAM could not read it: {exc}") from None
+    graph = PoseGraph()
+    for key in sorted(initial.keys()):
+        graph.add_node(int(key), initial.atPose3(key))
+    for index in range(factor_graph.size()):
+        factor = factor_graph.at(index)
+        if not isinstance(factor, gtsam.BetweenFactorPose3):
+            continue
+        i, j = (int(k) for k in factor.keys())
+        noise = factor.noiseModel()
+        cov = np.linalg.inv(noise.R().T @ noise.R())
+        kind = "odometry" if abs(i - j) == 1 else "loop"
+        graph.add_between(i, j, factor.measured(), cov, kind=kind)
+    return graph
+
+
+def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
+    """Write node poses and between factors with ``gtsam.writeG2o``; return what was dropped.
+
+    g2o (as GTSAM writes it) holds 3-D vertices and Gaussian SE3 edges only: priors,
+    robust kernels, custom factors, timestamps and scans are not written.
+    """
+    path = Path(path)
+    factors = gtsam.NonlinearFactorGraph()
+    dropped = _Dropped()
+    values = gtsam.Values()
+    id_of = {node_id: node_id for node_id in graph.nodes}
+    for node_id in graph.sorted_ids():
+        values.insert(id_of[node_id], graph.nodes[node_id].pose)
+    for record in graph.factors:
+        if record.measured is None or len(record.nodes) != 2:
+            dropped.add(f"{record.kind} factors")
+            continue
+        if record.robust is not None:
+            dropped.add("robust kernels (edges written as Gaussian)")
+        noise = gtsam.noiseModel.Gaussian.Covariance(record.covariance)
+        i, j = record.nodes
+        factors.add(gtsam.BetweenFactorPose3(i, j, record.measured, noise))
+    if any(node.scan is not None for node in graph.nodes.values()):
+        dropped.add("scans")
+    if any(node.timestamp != 0.0 for node in graph.nodes.values()):
+        dropped.add("timestamps")
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        gtsam.writeG2o(factors, values, str(tmp))
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+    return dropped.items()
+
+
+class _Dropped:
+    """Ordered set of dropped items (kept tiny on purpose)."""
+
+    def __init__(self) -> None:
+        self._items: dict[str, None] = {}
+
+    def add(self, item: str) -> None:
+        self._items[item] = None
+
+    def items(self) -> list[str]:
+        return list(self._items)
+
+
+# ---------------------------------------------------------------- OctoMap .graph
+_POINT = struct.Struct("<iddd")            # int32 tag 3, then x y z as float64
+_POSE = struct.Struct("<iddd" + "idddd")   # tag 3, t; tag 4, qw qx qy qz
+_POINT_DTYPE = np.dtype([("tag", "<i4"), ("xyz", "<f8", (3,))])
+GRAPH_POSE_KEY = "octomap_pose_f32"        # node metadata: the file's float32 pose, kept exact
+
+
+@dataclass(frozen=True)
+class _Pose6D:
+    """An OctoMap Pose6D as float32: translation and quaternion (w, x, y, z)."""
+
+    t: np.ndarray
+    q_wxyz: np.ndarray
+
+    def to_pose3(self) -> gtsam.Pose3:
+        w, x, y, z = (float(v) for v in self.q_wxyz)
+        return gtsam.Pose3(gtsam.Rot3.Quaternion(w, x, y, z), self.t.astype(float))
+
+    @classmethod
+    def from_pose3(cls, pose: gtsam.Pose3) -> _Pose6D:
+        q = pose.rotation().toQuaternion()
+        return cls(np.asarray(pose.translation(), dtype=np.float32),
+                   np.array([q.w(), q.x(), q.y(), q.z()], dtype=np.float32))
+
+    def pack(self) -> bytes:
+        return _POSE.pack(3, *(float(v) for v in self.t), 4, *(float(v) for v in self.q_wxyz))
+
+
+def _pose6d_for(pose: gtsam.Pose3, cached: _Pose6D | None) -> _Pose6D:
+    # Reuse the float32 numbers read from a file while the pose is unchanged, so that a
+    # read -> write round trip is byte-identical (a quaternion -> matrix -> quaternion
+    # round trip can flip the last float32 bit or the sign of q).
+    if cached is not None and cached.to_pose3().equals(pose, 1e-6):
+        return cached
+    return _Pose6D.from_pose3(pose)
+
+
+def _read_pose6d(reader: BinaryReader, what: str) -> _Pose6D:
+    start = reader.pos
+    values = reader.unpack("iddd" "idddd", what)
+    t = np.array(values[1:4], dtype=np.float32)
+    q = np.array(values[5:9], dtype=np.float32)
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+        raise reader.error(f"{what} has NaN or inf values", offset=start)
+    norm = float(np.linalg.norm(q.astype(float)))
+    if abs(norm - 1.0) > 1e-3:
+        raise reader.error(f"{what} quaternion norm is {norm:.6g}, not 1", offset=start)
+    return _Pose6D(t, q)
+
+
+def read_scan_graph(path: PathLike) -> PoseGraph:
+    """Read an OctoMap ScanGraph ``.graph`` file (binary, little-endian).
+
+    Points stay float32 in the sensor frame, as OctoMap stores them. Edges become
+    ``odometry`` between factors whose covariance is the identity divided by the edge
+    weight (the format carries no covariance; the weight is kept in the record's metadata).
+    """
+    data = Path(path).read_bytes()
+    reader = BinaryReader(data, path)
+    (n_nodes,) = reader.unpack("I", "node count")
+    # The smallest node is 4 + 64 + 4 bytes: a lying count fails here, before allocation.
+    reader.require(n_nodes * 72, f"{n_nodes} nodes")
+    graph = PoseGraph()
+    for index in range(n_nodes):
+        node_start = reader.pos
+        (n_points,) = reader.unpack("I", f"point count of node #{index}")
+        chunk = reader.take(n_points * _POINT.size, f"{n_points} points of node #{index}")
+        raw = np.frombuffer(chunk, dtype=_POINT_DTYPE)
+        points = raw["xyz"].astype(np.float32)
+        if not np.all(np.isfinite(points)):
+            bad = int(np.flatnonzero(~np.all(np.isfinite(points), axis=1))[0])
+            raise reader.error(f"node #{index} point {bad} is NaN or inf",
+                               offset=node_start + 4 + bad * _POINT.size)
+        pose6d = _read_pose6d(reader, f"pose of node #{index}")
+        (node_id,) = reader.unpack("I", f"id of node #{index}")
+        if node_id in graph.nodes:
+            raise reader.error(f"duplicate node id {node_id}", offset=reader.pos - 4)
+        graph.add_node(node_id, pose6d.to_pose3(), scan=Scan(points),
+                       **{GRAPH_POSE_KEY: pose6d})
+    (n_edges,) = reader.unpack("I", "edge count")
+    reader.require(n_edges * (8 + 64 + 8), f"{n_edges} edges")
+    for index in range(n_edges):
+        edge_start = reader.pos
+        first, second = reader.unpack("II", f"node ids of edge #{index}")
+        constraint = _read_pose6d(reader, f"constraint of edge #{index}")
+        (weight,) = reader.unpack("d", f"weight of edge #{index}")
+        if first not in graph.nodes or second not in graph.nodes:
+            raise reader.error(f"edge #{index} refers to unknown node {first} or {second}",
+                               offset=edge_start)
+        if not (math.isfinite(weight) and weight > 0):
+            raise reader.error(f"edge #{index} weight {weight} is not positive",
+                               offset=reader.pos - 8)
+        record = graph.add_between(first, second, constraint.to_pose3(), np.eye(6) / weight)
+        record.metadata.update({GRAPH_POSE_KEY: constraint, "weight": weight})
+    if reader.remaining:
+        raise reader.error(f"{reader.remaining} unexpected bytes after the last edge")
+    return graph
+
+
+def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
+    """Write an OctoMap ScanGraph ``.graph`` file; return what the format could not hold.
+
+    Node ids must fit in uint32; nodes without a scan get zero points. Between factors
+    become edges (their measured pose, weight from metadata or 1.0); other factors, labels
+    and covariances are dropped.
+    """
+    dropped = _Dropped()
+    parts: list[bytes] = [struct.pack("<I", len(graph.nodes))]
+    for node_id in graph.sorted_ids():
+        node = graph.nodes[node_id]
+        points = np.zeros((0, 3), np.float32) if node.scan is None else node.scan.points
+        if node.scan is not None and (node.scan.labels is not None or node.scan.probs is not None):
+            dropped.add("point labels")
+        if node.cov is not None:
+            dropped.add("node covariances")
+        block = np.empty(len(points), dtype=_POINT_DTYPE)
+        block["tag"] = 3
+        block["xyz"] = points.astype(np.float64)
+        parts.append(struct.pack("<I", len(points)))
+        parts.append(block.tobytes())
+        parts.append(_pose6d_for(node.pose, node.metadata.get(GRAPH_POSE_KEY)).pack())
+        parts.append(struct.pack("<I", node_id))
+    edges = []
+    for record in graph.factors:
+        if record.measured is not None and len(record.nodes) == 2:
+            edges.append(record)
+        else:
+            dropped.add(f"{record.kind} factors")
+    if any(record.covariance is not None for record in edges):
+        dropped.add("edge covariances (kept as weights only)")
+    parts.append(struct.pack("<I", len(edges)))
+    for record in edges:
+        i, j = record.nodes
+        parts.append(struct.pack("<II", i, j))
+        parts.append(_pose6d_for(record.measured, record.metadata.get(GRAPH_POSE_KEY)).pack())
+        parts.append(struct.pack("<d", float(record.metadata.get("weight", 1.0))))
+    if any(node.timestamp != 0.0 for node in graph.nodes.values()):
+        dropped.add("timestamps")
+    with atomic_write(path, "wb") as handle:
+        for part in parts:
+            handle.write(part)
+    return dropped.items()
+
+
+# ---------------------------------------------------------------- dispatch
+FORMATS = {".graph": "octomap", ".g2o": "g2o", ".txt": "tum", ".tum": "tum"}
+
+
+def format_of(path: PathLike) -> str:
+    """The pose-graph format a file name implies: 'octomap', 'g2o' or 'tum'."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in FORMATS:
+        raise OctofactorError(f"{path}: unknown pose-graph format {suffix!r} "
+                              "(use .graph, .g2o, or .txt/.tum for TUM)")
+    return FORMATS[suffix]
+
+
+def read_pose_graph(path: PathLike) -> PoseGraph:
+    """Read any supported pose-graph file, chosen by its extension."""
+    kind = format_of(path)
+    if not Path(path).is_file():
+        raise OctofactorError(f"{path}: no such file")
+    return {"octomap": read_scan_graph, "g2o": read_g2o, "tum": read_tum}[kind](path)
+
+
+def write_pose_graph(path: PathLike, graph: PoseGraph) -> list[str]:
+    """Write a pose graph in the format its extension implies; return what was dropped."""
+    kind = format_of(path)
+    if kind == "tum":
+        write_tum(path, graph)
+        dropped = []
+        if graph.factors:
+            dropped.append("factors")
+        if graph.num_points():
+            dropped.append("scans")
+        return dropped
+    return {"octomap": write_scan_graph, "g2o": write_g2o}[kind](path, graph)
+
+
+def load_node_clouds(graph: PoseGraph, directory: PathLike) -> int:
+    """Attach per-node clouds ``<directory>/<node_id>.xyz|.ply|.pcd`` (sensor frame).
+
+    ``.xyz`` is OctoMap's ASCII point file (``x y z`` per line); PLY/PCD are read with
+    Open3D. Returns the number of nodes that got a cloud.
+    """
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise OctofactorError(f"{directory}: cloud directory does not exist")
+    attached = 0
+    for node_id, node in graph.nodes.items():
+        for suffix in (".xyz", ".ply", ".pcd"):
+            candidate = directory / f"{node_id}{suffix}"
+            if candidate.is_file():
+                node.scan = Scan(_read_cloud(candidate))
+                attached += 1
+                break
+    return attached
+
+
+def _read_cloud(path: Path) -> np.ndarray:
+    if path.suffix == ".xyz":
+        try:
+            points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
+        except ValueError as exc:
+            raise FormatError(path, f"not an 'x y z' point file: {exc}") from None
+        if points.size and points.shape[1] != 3:
+            raise FormatError(path, f"expected 3 columns, found {points.shape[1]}")
+        points = points.reshape(-1, 3)
+    else:
+        import open3d as o3d  # heavy: only when PLY/PCD clouds are asked for
+
+        points = np.asarray(o3d.io.read_point_cloud(str(path)).points)
+        if len(points) == 0:
+            raise FormatError(path, "no points read (unreadable or empty cloud)")
+    if not np.all(np.isfinite(points)):
+        raise FormatError(path, "cloud has NaN or inf coordinates")
+    return points.astype(np.float32)
+
+
+__all__ = [
+    "read_tum", "write_tum", "read_g2o", "write_g2o", "read_scan_graph", "write_scan_graph",
+    "read_pose_graph", "write_pose_graph", "load_node_clouds", "pose_from_tum", "pose_to_tum",
+    "format_of", "node_key",
+]

@@ -1,0 +1,156 @@
+"""Per-point GICP covariances and nearest-neighbour correspondences (geometric and semantic).
+
+Everything here takes arrays (``points`` (N, 3), ``probs`` (N, C)) and returns arrays or
+small dataclasses; KD-trees are :class:`scipy.spatial.cKDTree`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import EstimationError
+
+
+def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
+                      tree: cKDTree | None = None) -> np.ndarray:
+    """Return the (N, 3, 3) plane-regularised GICP covariance of every point.
+
+    The covariance of the ``k`` nearest neighbours is eigen-decomposed and its eigenvalues
+    replaced by ``(epsilon, 1, 1)`` (Segal et al. 2009, the C_k of eq. (3) in Nakamura et al.):
+    each point is modelled as a small disc of its local surface, so the residual along the
+    surface normal dominates. With fewer than 3 points the identity is returned.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    n = len(points)
+    if n < 3:
+        return np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
+    k = int(min(max(k, 3), n))
+    tree = cKDTree(points) if tree is None else tree
+    _, idx = tree.query(points, k=k)
+    neigh = points[idx]                                   # (N, k, 3)
+    centred = neigh - neigh.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    _, vecs = np.linalg.eigh(cov)                        # ascending eigenvalues
+    reg = np.array([epsilon, 1.0, 1.0])
+    return np.einsum("nij,j,nkj->nik", vecs, reg, vecs)
+
+
+@dataclass(frozen=True)
+class Correspondences:
+    """Matched index pairs with their E-step weights.
+
+    Attributes
+    ----------
+    source_idx, target_idx : (M,) int64 -- matched rows of the source and target arrays
+    weights : (M,) float -- omega_k (1 for geometric ICP; the semantic EM weight otherwise)
+    distances : (M,) float -- Euclidean distance after applying the current T
+    n_source : int -- source points that were queried
+    """
+
+    source_idx: np.ndarray
+    target_idx: np.ndarray
+    weights: np.ndarray
+    distances: np.ndarray
+    n_source: int
+
+    def __len__(self) -> int:
+        return len(self.source_idx)
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Return ``points`` (N, 3) mapped by the 4x4 ``T``."""
+    return points @ T[:3, :3].T + T[:3, 3]
+
+
+def nearest_correspondences(source_in_target: np.ndarray, target_tree: cKDTree,
+                            d_max: float) -> Correspondences:
+    """Return nearest-neighbour pairs closer than ``d_max`` (ICP's omega_i of eq. (2))."""
+    n = len(source_in_target)
+    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max)
+    ok = np.isfinite(dist)
+    src = np.nonzero(ok)[0]
+    return Correspondences(src, idx[ok].astype(np.int64), np.ones(len(src)), dist[ok], n)
+
+
+class SemanticIndex:
+    """Per-class KD-trees over the target points, for class-conditioned correspondences.
+
+    Parameters
+    ----------
+    points : (N, 3) target points
+    probs : (N, C) class probabilities of the target points
+    """
+
+    def __init__(self, points: np.ndarray, probs: np.ndarray):
+        points = np.asarray(points, dtype=float)
+        probs = np.asarray(probs, dtype=float)
+        if probs.ndim != 2 or len(probs) != len(points):
+            raise EstimationError(
+                f"target probs must be (N, C) with N={len(points)}, got {probs.shape}")
+        self.points = points
+        self.probs = probs
+        labels = probs.argmax(axis=1)
+        self.members: dict[int, np.ndarray] = {}
+        self.trees: dict[int, cKDTree] = {}
+        for c in np.unique(labels):
+            rows = np.nonzero(labels == c)[0]
+            self.members[int(c)] = rows
+            self.trees[int(c)] = cKDTree(points[rows])
+
+    @property
+    def n_classes(self) -> int:
+        return self.probs.shape[1]
+
+
+def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndarray,
+                             index: SemanticIndex, d_max: float,
+                             residual_sigma: float, top_classes: int = 2,
+                             min_weight: float = 1e-3) -> Correspondences:
+    """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
+
+    For each source point and each of its ``top_classes`` most probable classes c, the
+    correspondence candidate is the nearest target point whose argmax label is c (eq. (8):
+    the correspondence is uniform over the nearest neighbours within the class). Its weight is
+    the E-step posterior
+
+        omega_kc  propto  p(r_kc | i_kc; T_old) * p(c | x_s) * p(c | x_t)
+
+    with an isotropic Gaussian residual likelihood of standard deviation ``residual_sigma``
+    (the current alignment uncertainty, annealed by the caller). Candidates with omega below
+    ``min_weight`` are dropped.
+    """
+    n, c_src = source_probs.shape
+    if c_src != index.n_classes:
+        raise EstimationError(
+            f"source has {c_src} classes but the target has {index.n_classes}")
+    top = min(int(top_classes), c_src)
+    order = np.argsort(-source_probs, axis=1)[:, :top]
+    src_rows, tgt_rows, dists, prior = [], [], [], []
+    for rank in range(top):
+        cls_of_point = order[:, rank]
+        for c, tree in index.trees.items():
+            rows = np.nonzero(cls_of_point == c)[0]
+            if len(rows) == 0:
+                continue
+            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max)
+            ok = np.isfinite(dist)
+            if not ok.any():
+                continue
+            rows = rows[ok]
+            tgt = index.members[c][j[ok]]
+            src_rows.append(rows)
+            tgt_rows.append(tgt)
+            dists.append(dist[ok])
+            prior.append(source_probs[rows, c] * index.probs[tgt, c])
+    if not src_rows:
+        empty = np.zeros(0)
+        return Correspondences(empty.astype(np.int64), empty.astype(np.int64), empty, empty, n)
+    src = np.concatenate(src_rows)
+    tgt = np.concatenate(tgt_rows)
+    dist = np.concatenate(dists)
+    # eq. (5): label agreement p(c|x_s) p(c|x_t) times the residual likelihood under T_old
+    omega = np.concatenate(prior) * np.exp(-0.5 * (dist / residual_sigma) ** 2)
+    keep = omega >= min_weight
+    return Correspondences(src[keep], tgt[keep], omega[keep], dist[keep], n)

@@ -1,0 +1,106 @@
+"""Image loading and line segments (OpenCV) for the vanishing-point detectors.
+
+Everything here returns plain arrays: ``(M, 4)`` float64 segments ``x1, y1, x2, y2`` in
+0-based pixel coordinates of the full-resolution image.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from perception.errors import ImageError
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Return the image file at ``path`` as an (H, W) uint8 grayscale array.
+
+    Raises
+    ------
+    ImageError
+        When the file is missing, unreadable, empty or not a decodable image (the message
+        names the file).
+    """
+    import cv2
+
+    try:
+        data = np.fromfile(os.fspath(path), dtype=np.uint8)
+    except FileNotFoundError:
+        raise ImageError(path, "no such file") from None
+    except IsADirectoryError:
+        raise ImageError(path, "is a directory, not an image") from None
+    except OSError as exc:
+        raise ImageError(path, f"cannot read ({exc.strerror})") from None
+    if data.size == 0:
+        raise ImageError(path, "empty file")
+    image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+    if image is None or image.size == 0:
+        raise ImageError(path, "not a decodable image (corrupt or unsupported format)")
+    return image
+
+
+def to_gray_u8(image: np.ndarray) -> np.ndarray:
+    """Return an (H, W) uint8 grayscale view/copy of a gray, BGR or BGRA image array.
+
+    Float images with values in [0, 1] are scaled to [0, 255]; other dtypes are clipped.
+    """
+    import cv2
+
+    image = np.asarray(image)
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 3:
+        if image.shape[2] == 4:
+            image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+        if image.shape[2] != 3:
+            raise ValueError(f"expected 1, 3 or 4 channels, got shape {image.shape}")
+    elif image.ndim != 2:
+        raise ValueError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        values = image.astype(np.float64)
+        if np.issubdtype(image.dtype, np.floating) and np.nanmax(values, initial=0.0) <= 1.0:
+            values = values * 255.0
+        image = np.clip(np.nan_to_num(values), 0, 255).astype(np.uint8)
+    if image.ndim == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return np.ascontiguousarray(image)
+
+
+def lsd_segments(gray: np.ndarray, scale: float = 0.5, min_length: float = 0.0,
+                 max_segments: int | None = None) -> np.ndarray:
+    """Return the LSD line segments of a grayscale image as (M, 4) float64 ``x1, y1, x2, y2``.
+
+    Uses ``cv2.createLineSegmentDetector`` with standard refinement; ``scale`` is LSD's own
+    Gaussian down-scaling (0.5 halves the run time of the default 0.8 on 640x480 images with
+    little loss on long segments). Segments shorter than ``min_length`` pixels are dropped;
+    ``max_segments`` keeps the longest ones (bounds the hypothesis-scoring cost).
+    """
+    import cv2
+
+    detector = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale)
+    found = detector.detect(gray)[0]
+    if found is None or len(found) == 0:
+        return np.zeros((0, 4))
+    segments = found.reshape(-1, 4).astype(np.float64)
+    lengths = np.hypot(segments[:, 2] - segments[:, 0], segments[:, 3] - segments[:, 1])
+    keep = lengths >= min_length
+    segments, lengths = segments[keep], lengths[keep]
+    if max_segments is not None and len(segments) > max_segments:
+        # stable sort keeps the result deterministic when lengths tie
+        order = np.argsort(-lengths, kind="stable")[:max_segments]
+        segments = segments[np.sort(order)]
+    return segments
+
+
+def hough_segments(gray: np.ndarray, canny_low: float, canny_high: float, rho: float,
+                   theta: float, threshold: int, min_line_length: float,
+                   max_line_gap: float) -> np.ndarray:
+    """Return Canny + probabilistic Hough (``cv2.HoughLinesP``) segments as (M, 4) float64."""
+    import cv2
+
+    edges = cv2.Canny(gray, canny_low, canny_high)
+    found = cv2.HoughLinesP(edges, rho, theta, threshold, minLineLength=min_line_length,
+                            maxLineGap=max_line_gap)
+    if found is None or len(found) == 0:
+        return np.zeros((0, 4))
+    return found.reshape(-1, 4).astype(np.float64)

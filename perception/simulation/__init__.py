@@ -1,0 +1,1 @@
+"""Synthetic data sets: the corridor RGB-D sequence and the household room."""

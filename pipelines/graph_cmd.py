@@ -1,0 +1,74 @@
+"""`octofactor graph info|convert|optimize`: pose-graph files (.graph, .g2o, TUM .txt)."""
+from __future__ import annotations
+
+import sys
+
+
+def register(add_command) -> None:
+    info = add_command("info", "summarise a pose-graph file (.graph, .g2o, TUM .txt)",
+                       group="graph")
+    info.add_argument("file")
+    info.set_defaults(func=run_info)
+
+    convert = add_command("convert", "convert between .graph, .g2o and TUM .txt", group="graph")
+    convert.add_argument("input")
+    convert.add_argument("output")
+    convert.add_argument("--clouds", metavar="DIR",
+                         help="attach per-node clouds DIR/<id>.xyz|.ply|.pcd (sensor frame)")
+    convert.set_defaults(func=run_convert)
+
+    optimize = add_command("optimize", "optimise a pose graph (Levenberg-Marquardt or iSAM2)",
+                           group="graph")
+    optimize.add_argument("input")
+    optimize.add_argument("output")
+    optimize.add_argument("--method", choices=("lm", "isam2"), default="lm")
+    optimize.add_argument("--max-iterations", type=int, default=100)
+    optimize.set_defaults(func=run_optimize)
+
+
+def run_info(args) -> int:
+    from estimation.io import format_of, read_pose_graph
+
+    graph = read_pose_graph(args.file)
+    stamps = graph.timestamps()
+    counts = graph.factor_counts()
+    print(f"file:    {args.file} ({format_of(args.file)})")
+    print(f"nodes:   {len(graph.nodes)}")
+    kinds = ", ".join(f"{kind} {n}" for kind, n in sorted(counts.items())) or "none"
+    print(f"factors: {len(graph.factors)} ({kinds})")
+    print(f"points:  {graph.num_points()} in {sum(n.scan is not None for n in graph.nodes.values())}"
+          " scans")
+    if len(stamps):
+        first, last = float(stamps.min()), float(stamps.max())
+        print(f"time:    {first!r} .. {last!r} ({last - first:.6f} s)")
+    return 0
+
+
+def _report_dropped(dropped: list[str], output: str) -> None:
+    if dropped:
+        print(f"octofactor: note: {output} cannot hold: {', '.join(dropped)} (dropped)",
+              file=sys.stderr)
+
+
+def run_convert(args) -> int:
+    from estimation.io import load_node_clouds, read_pose_graph, write_pose_graph
+
+    graph = read_pose_graph(args.input)
+    if args.clouds:
+        attached = load_node_clouds(graph, args.clouds)
+        print(f"attached clouds to {attached} of {len(graph.nodes)} nodes", file=sys.stderr)
+    _report_dropped(write_pose_graph(args.output, graph), args.output)
+    return 0
+
+
+def run_optimize(args) -> int:
+    from estimation.io import read_pose_graph, write_pose_graph
+
+    graph = read_pose_graph(args.input)
+    if not graph.factors:
+        print("octofactor: note: the graph has no factors; nothing to optimise", file=sys.stderr)
+    result = graph.optimize(method=args.method, max_iterations=args.max_iterations)
+    print(f"initial error: {result.initial_error:.6g}")
+    print(f"final error:   {result.final_error:.6g} ({result.iterations} iterations, {result.method})")
+    _report_dropped(write_pose_graph(args.output, graph), args.output)
+    return 0
