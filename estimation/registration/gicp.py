@@ -1,0 +1,395 @@
+"""GICP-SE(3) and Semantic-ICP registration: an outer correspondence/EM loop around GTSAM.
+
+Eq. (3) of Nakamura et al. (after Parkison et al., BMVC 2018):
+``T* = argmin_T sum_k rho_alpha(||x_t - T x_s||^2_{C_k})`` with the Cauchy
+``rho_alpha(e) = alpha^2 log(1 + e / alpha^2)`` and ``C_k = Sigma_t + R Sigma_s R^T``.
+Semantic-ICP (eq. (5)-(8)) adds the EM weight omega_k (see :mod:`.correspondences`).
+
+Each outer iteration: correspondences (and omega_k) at ``T_old``; IRLS weights of the
+Cauchy kernel at ``T_old``; one batched GTSAM factor solved by GTSAM's Gauss-Newton or
+Levenberg-Marquardt optimiser; stop when ``||Logmap(T_old^-1 T)||`` is below tolerance
+after the correspondence distance schedule has reached ``max_correspondence_distance``.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ..errors import EstimationError
+from .correspondences import (
+    Correspondences,
+    SemanticIndex,
+    nearest_correspondences,
+    point_covariances,
+    semantic_correspondences,
+    transform_points,
+)
+from .factors import BatchedGicpFactor, cauchy_loss, cauchy_weight, gicp_terms, solve_weighted, whitening
+
+# Variance given to directions the data leave unconstrained (rad^2 or m^2): large enough to
+# show "unknown", finite so that the matrix stays a valid covariance for a PoseGraph.
+UNCONSTRAINED_VARIANCE = 1e4
+
+
+@dataclass(frozen=True)
+class RegistrationConfig:
+    """Settings of GICP-SE(3) / Semantic-ICP.
+
+    Attributes
+    ----------
+    max_correspondence_distance : d_max (m) at convergence (eq. (2))
+    initial_correspondence_distance : d_max (m) of the first iteration; it decays
+        geometrically (``decay``) to ``max_correspondence_distance``. None = no annealing.
+    cauchy_alpha : alpha of the Cauchy kernel, in units of the Mahalanobis distance
+    k_neighbours, epsilon : per-point covariance estimation (eigenvalues -> (epsilon, 1, 1))
+    max_iterations : outer correspondence/EM iterations
+    inner_iterations : GTSAM optimiser iterations per outer iteration
+    optimizer : "gn" (gtsam.GaussNewtonOptimizer) or "lm" (LevenbergMarquardtOptimizer)
+    tolerance : stop when ||Logmap(T_old^-1 T)|| < tolerance
+    semantic_weight : "inside" = rho(omega_k e_k) (Nakamura et al. eq. (7)), "outside" =
+        omega_k rho(e_k) (Parkison et al.'s implementation)
+    top_classes : classes per source point that get a correspondence in Semantic-ICP
+    min_inliers : fewer correspondences than this -> converged=False
+    covariance : "sandwich" (cluster-robust, calibrated), "hessian" (raw inverse Hessian)
+    """
+
+    max_correspondence_distance: float = 0.3
+    initial_correspondence_distance: float | None = None
+    decay: float = 0.7
+    cauchy_alpha: float = 1.0
+    k_neighbours: int = 20
+    epsilon: float = 1e-3
+    max_iterations: int = 60
+    inner_iterations: int = 1
+    optimizer: str = "gn"
+    tolerance: float = 1e-5
+    semantic_weight: str = "outside"
+    top_classes: int = 2
+    min_inliers: int = 12
+    covariance: str = "sandwich"
+    degeneracy_ratio: float = 1e-3
+
+    def __post_init__(self):
+        if self.max_correspondence_distance <= 0:
+            raise EstimationError("max_correspondence_distance must be positive")
+        if self.optimizer not in ("gn", "lm"):
+            raise EstimationError(f"optimizer must be 'gn' or 'lm', got {self.optimizer!r}")
+        if self.semantic_weight not in ("inside", "outside"):
+            raise EstimationError(
+                f"semantic_weight must be 'inside' or 'outside', got {self.semantic_weight!r}")
+        if self.covariance not in ("sandwich", "hessian"):
+            raise EstimationError(f"covariance must be 'sandwich' or 'hessian'")
+
+
+@dataclass(frozen=True)
+class RegistrationResult:
+    """The estimated ``T_target_source`` with its uncertainty and diagnostics.
+
+    Attributes
+    ----------
+    T : (4, 4) T_target_source (maps source coordinates into the target frame)
+    covariance : (6, 6) covariance of ``xi`` in ``T Exp(xi)``, order [rotation, translation];
+        huge (UNCONSTRAINED_VARIANCE) along directions the data leave unconstrained
+    hessian : (6, 6) Gauss-Newton information sum w_k J_k^T J_k at the solution
+    iterations : outer iterations run
+    inliers : correspondences at the solution
+    fitness : inliers / source points
+    rmse : root mean square Euclidean distance of the correspondences (m)
+    converged : True only when the tolerance was met with enough, well-conditioned data
+    reason : why it stopped ("converged", "max iterations", "degenerate ...", ...)
+    cost_log : robust cost at the start of every outer iteration
+    method : "gicp" or "semantic"
+    time_s : wall time
+    """
+
+    T: np.ndarray
+    covariance: np.ndarray
+    hessian: np.ndarray
+    iterations: int
+    inliers: int
+    fitness: float
+    rmse: float
+    converged: bool
+    reason: str
+    cost_log: tuple[float, ...] = field(default_factory=tuple)
+    method: str = "gicp"
+    time_s: float = 0.0
+
+    @property
+    def pose(self) -> gtsam.Pose3:
+        """T_target_source as a :class:`gtsam.Pose3`."""
+        return gtsam.Pose3(self.T)
+
+    def add_to_pose_graph(self, pose_graph, target_id: int, source_id: int,
+                          kind: str = "registration") -> None:
+        """Add ``T_target_source`` as a between factor target_id -> source_id.
+
+        ``kind`` is "registration" or "calibration". A failed registration raises
+        :class:`EstimationError` instead of adding a wrong constraint.
+        """
+        if kind not in ("registration", "calibration"):
+            raise EstimationError(f"kind must be 'registration' or 'calibration', got {kind!r}")
+        if not self.converged:
+            raise EstimationError(f"registration did not converge ({self.reason}); not added")
+        pose_graph.add_between(target_id, source_id, self.pose, self.covariance, kind=kind)
+
+
+def _as_points(points: np.ndarray, what: str) -> np.ndarray:
+    points = np.asarray(points, dtype=float)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise EstimationError(f"{what} must be (N, 3), got shape {points.shape}")
+    if not np.all(np.isfinite(points)):
+        raise EstimationError(f"{what} has NaN or inf coordinates")
+    return points
+
+
+def _as_transform(T: np.ndarray | gtsam.Pose3 | None) -> np.ndarray:
+    if T is None:
+        return np.eye(4)
+    if isinstance(T, gtsam.Pose3):
+        return T.matrix()
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        raise EstimationError(f"initial T must be a finite 4x4 matrix, got shape {T.shape}")
+    return gtsam.Pose3(T).matrix()  # re-orthonormalises the rotation
+
+
+class Registration:
+    """Register a source cloud to a target cloud (GICP-SE(3) or Semantic-ICP).
+
+    Per-point covariances and KD-trees are computed once and cached on the instance, so
+    repeated calls (other initial guesses, Monte Carlo runs) reuse them.
+
+    Parameters
+    ----------
+    source, target : (N, 3) points (source frame, target frame)
+    config : :class:`RegistrationConfig`
+    source_probs, target_probs : (N, C) class probabilities; both given -> Semantic-ICP
+    source_cov, target_cov : optional precomputed (N, 3, 3) per-point covariances
+    """
+
+    def __init__(self, source: np.ndarray, target: np.ndarray,
+                 config: RegistrationConfig | None = None,
+                 source_probs: np.ndarray | None = None, target_probs: np.ndarray | None = None,
+                 source_cov: np.ndarray | None = None, target_cov: np.ndarray | None = None):
+        self.config = config or RegistrationConfig()
+        self.source = _as_points(source, "source points")
+        self.target = _as_points(target, "target points")
+        self.semantic = source_probs is not None and target_probs is not None
+        if (source_probs is None) != (target_probs is None):
+            raise EstimationError("Semantic-ICP needs class probabilities for both clouds")
+        if self.semantic:
+            self.source_probs = self._probs(source_probs, len(self.source), "source")
+            self.target_probs = self._probs(target_probs, len(self.target), "target")
+            if self.source_probs.shape[1] != self.target_probs.shape[1]:
+                raise EstimationError(
+                    f"source has {self.source_probs.shape[1]} classes, "
+                    f"target {self.target_probs.shape[1]}")
+        self._source_cov = source_cov
+        self._target_cov = target_cov
+        self._tree: cKDTree | None = None
+        self._index: SemanticIndex | None = None
+
+    @staticmethod
+    def _probs(probs: np.ndarray, n: int, what: str) -> np.ndarray:
+        probs = np.asarray(probs, dtype=float)
+        if probs.ndim != 2 or len(probs) != n:
+            raise EstimationError(f"{what} probs must be ({n}, C), got {probs.shape}")
+        return probs
+
+    @property
+    def method(self) -> str:
+        return "semantic" if self.semantic else "gicp"
+
+    @property
+    def source_cov(self) -> np.ndarray:
+        if self._source_cov is None:
+            self._source_cov = point_covariances(self.source, self.config.k_neighbours,
+                                                 self.config.epsilon)
+        return self._source_cov
+
+    @property
+    def target_tree(self) -> cKDTree:
+        if self._tree is None:
+            self._tree = cKDTree(self.target)
+        return self._tree
+
+    @property
+    def target_cov(self) -> np.ndarray:
+        if self._target_cov is None:
+            self._target_cov = point_covariances(self.target, self.config.k_neighbours,
+                                                 self.config.epsilon, tree=self.target_tree)
+        return self._target_cov
+
+    @property
+    def semantic_index(self) -> SemanticIndex:
+        if self._index is None:
+            self._index = SemanticIndex(self.target, self.target_probs)
+        return self._index
+
+    def _failed(self, T: np.ndarray, reason: str, start: float, iterations: int = 0,
+                cost_log=()) -> RegistrationResult:
+        cov = np.eye(6) * UNCONSTRAINED_VARIANCE
+        return RegistrationResult(T, cov, np.zeros((6, 6)), iterations, 0, 0.0, float("nan"),
+                                  False, reason, tuple(cost_log), self.method,
+                                  time.perf_counter() - start)
+
+    def correspondences(self, T: np.ndarray, d_max: float) -> Correspondences:
+        """Return the correspondences (with omega_k) at ``T`` within ``d_max``."""
+        moved = transform_points(T, self.source)
+        if self.semantic:
+            return semantic_correspondences(moved, self.source_probs, self.semantic_index, d_max,
+                                            residual_sigma=max(d_max, 1e-6),
+                                            top_classes=self.config.top_classes)
+        return nearest_correspondences(moved, self.target_tree, d_max)
+
+    def _weights(self, e: np.ndarray, omega: np.ndarray) -> np.ndarray:
+        alpha = self.config.cauchy_alpha
+        if self.semantic and self.config.semantic_weight == "inside":
+            # d/dxi rho(omega e) = omega rho'(omega e) de/dxi  (eq. (7))
+            return omega * cauchy_weight(omega * e, alpha)
+        return omega * cauchy_weight(e, alpha)
+
+    def _cost(self, e: np.ndarray, omega: np.ndarray) -> float:
+        alpha = self.config.cauchy_alpha
+        if self.semantic and self.config.semantic_weight == "inside":
+            return float(np.sum(cauchy_loss(omega * e, alpha)))
+        return float(np.sum(omega * cauchy_loss(e, alpha)))
+
+    def run(self, init: np.ndarray | gtsam.Pose3 | None = None) -> RegistrationResult:
+        """Return the registration result starting from ``init`` (T_target_source)."""
+        cfg = self.config
+        start = time.perf_counter()
+        T = _as_transform(init)
+        if len(self.source) < cfg.min_inliers or len(self.target) < cfg.min_inliers:
+            return self._failed(T, f"too few points: source {len(self.source)}, target "
+                                   f"{len(self.target)} (need {cfg.min_inliers})", start)
+        if self.semantic and len(self.semantic_index.trees) == 0:
+            return self._failed(T, "target has no labelled points", start)
+        key = gtsam.symbol("t", 0)
+        d_final = cfg.max_correspondence_distance
+        d = max(cfg.initial_correspondence_distance or d_final, d_final)
+        cost_log: list[float] = []
+        converged = False
+        reason = "max iterations"
+        iterations = 0
+        for iterations in range(1, cfg.max_iterations + 1):
+            corr = self.correspondences(T, d)
+            if len(corr) < cfg.min_inliers:
+                return self._failed(T, f"only {len(corr)} correspondences within "
+                                       f"d_max={d:g} m (need {cfg.min_inliers})",
+                                    start, iterations, cost_log)
+            src, tgt = self.source[corr.source_idx], self.target[corr.target_idx]
+            Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
+                           T[:3, :3])
+            e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
+            cost_log.append(self._cost(e, corr.weights))
+            factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
+            T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations)
+            step = np.linalg.norm(gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new))))
+            T = T_new
+            annealed = d <= d_final * (1 + 1e-9)
+            d = max(d * cfg.decay, d_final)
+            if annealed and step < cfg.tolerance:
+                converged, reason = True, "converged"
+                break
+        return self._finish(T, d_final, converged, reason, iterations, cost_log, start)
+
+    def _finish(self, T, d_max, converged, reason, iterations, cost_log, start):
+        cfg = self.config
+        corr = self.correspondences(T, d_max)
+        if len(corr) < cfg.min_inliers:
+            return self._failed(T, f"only {len(corr)} correspondences at the solution",
+                                start, iterations, cost_log)
+        src, tgt = self.source[corr.source_idx], self.target[corr.target_idx]
+        Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
+                       T[:3, :3])
+        terms = gicp_terms(T, src, tgt, Ut)
+        w = self._weights(terms.mahalanobis, corr.weights)
+        H = np.einsum("m,mji,mjk->ik", w, terms.jacobians, terms.jacobians)
+        # the per-correspondence score w_k J_k^T r_k, summed per target point: source points
+        # sharing a target point share its noise, so they are one cluster (cluster-robust
+        # sandwich); independent clusters are what the outer product assumes
+        scores = np.einsum("m,mji,mj->mi", w, terms.jacobians, terms.residuals)
+        clustered = np.zeros((len(self.target), 6))
+        np.add.at(clustered, corr.target_idx, scores)
+        B = clustered.T @ clustered
+        cov, unconstrained = covariance_from_information(
+            H, B if cfg.covariance == "sandwich" else None, self._scale(src),
+            self._normal_information(T, src, tgt, corr, w), cfg.degeneracy_ratio)
+        inliers = len(corr)
+        if unconstrained:
+            converged = False
+            reason = f"degenerate geometry: {unconstrained} unconstrained direction(s)"
+        dist = np.linalg.norm(tgt - transform_points(T, src), axis=1)
+        return RegistrationResult(
+            T, cov, H, iterations, inliers, inliers / len(self.source),
+            float(np.sqrt(np.mean(dist ** 2))), converged, reason, tuple(cost_log),
+            self.method, time.perf_counter() - start)
+
+    @staticmethod
+    def _scale(points: np.ndarray) -> float:
+        return float(max(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))), 1e-3))
+
+    def _normal_information(self, T, src, tgt, corr, w) -> np.ndarray:
+        """Point-to-plane information: what the surfaces constrain (for degeneracy only).
+
+        With the (epsilon, 1, 1) covariances even in-plane residuals carry weight 1/epsilon
+        smaller, so the GICP Hessian of a single plane is merely ill-conditioned; projected on
+        the target normals it is singular, which is the test we want.
+        """
+        _, vecs = np.linalg.eigh(self.target_cov[corr.target_idx])
+        normals = vecs[:, :, 0]
+        R = T[:3, :3]
+        J = np.empty((len(src), 6))
+        # n^T [R [x_s]_x, -R] = [((R^T n) x x_s)^T, -(R^T n)^T]; the sign does not matter here
+        Rn = normals @ R
+        J[:, :3] = np.cross(src, Rn)
+        J[:, 3:] = -Rn
+        return np.einsum("m,mi,mj->ij", w, J, J)
+
+
+def covariance_from_information(H: np.ndarray, B: np.ndarray | None, scale: float,
+                                H_normal: np.ndarray | None = None,
+                                degeneracy_ratio: float = 1e-3) -> tuple[np.ndarray, int]:
+    """Return (covariance, number of unconstrained directions) from the Gauss-Newton data.
+
+    ``B is None`` gives the raw inverse Hessian ``H^-1``; otherwise the sandwich
+    ``H^-1 B H^-1``. Rotations are scaled by the cloud radius ``scale`` before comparing
+    eigenvalues, so metres and radians weigh alike. Directions whose (point-to-plane)
+    information is below ``degeneracy_ratio`` of the largest get UNCONSTRAINED_VARIANCE.
+    """
+    S = np.diag([scale] * 3 + [1.0] * 3)
+    test = H if H_normal is None else H_normal
+    lam, vecs = np.linalg.eigh(np.linalg.inv(S) @ test @ np.linalg.inv(S))
+    bad = lam < degeneracy_ratio * max(lam.max(), 1e-300)
+    n_bad = int(bad.sum())
+    Hs = np.linalg.inv(S) @ H @ np.linalg.inv(S)
+    if n_bad:
+        # project out the unconstrained subspace, invert in the rest, put a huge variance there
+        good = vecs[:, ~bad]
+        Hg = good.T @ Hs @ good
+        Hinv_s = good @ np.linalg.inv(Hg) @ good.T
+    else:
+        Hinv_s = np.linalg.inv(Hs)
+    Hinv = np.linalg.inv(S) @ Hinv_s @ np.linalg.inv(S)
+    cov = Hinv if B is None else Hinv @ B @ Hinv
+    if n_bad:
+        null = np.linalg.inv(S) @ vecs[:, bad]
+        null = null / np.linalg.norm(null, axis=0)
+        cov = cov + UNCONSTRAINED_VARIANCE * null @ null.T
+    cov = 0.5 * (cov + cov.T)
+    # a floor keeps the matrix positive definite when a direction has no residual at all
+    cov += np.eye(6) * 1e-12
+    return cov, n_bad
+
+
+def register(source: np.ndarray, target: np.ndarray, init=None,
+             config: RegistrationConfig | None = None, source_probs=None,
+             target_probs=None) -> RegistrationResult:
+    """Return the GICP-SE(3) (or, with both probability arrays, Semantic-ICP) result."""
+    return Registration(source, target, config, source_probs, target_probs).run(init)

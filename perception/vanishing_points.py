@@ -1,0 +1,490 @@
+"""Vanishing points: the seed paper's detector and a Manhattan-frame detector with covariances.
+
+Two detectors share one result type:
+
+* :func:`detect_seed` -- the seed paper's method (Canny, probabilistic Hough, removal of lines
+  parallel to the image u / v axes, least-squares intersection with the Moore-Penrose
+  pseudo-inverse; eq. (1)-(4)). One VP, fast, fragile on cluttered real images.
+* :func:`detect_manhattan` -- up to three mutually orthogonal VPs from LSD segments and the
+  camera intrinsics: RANSAC over minimal 3-segment Manhattan frames scored by the
+  length-weighted angular consistency of all segments, then a weighted Gauss-Newton fit of the
+  rotation to its inlier segments with a first-order noise model of the segment endpoints. The
+  2x2 pixel covariance of each VP is the propagated covariance of that fit, scaled by the
+  residual variance (so it grows when the segments disagree).
+
+Conventions: pixels are 0-based (x right, y down); directions are unit vectors in the camera
+frame (x right, y down, z forward) with ``z >= 0``; ``K`` is the 3x3 camera matrix.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from perception.lines import hough_segments, lsd_segments, to_gray_u8
+
+__all__ = [
+    "VanishingPoint", "VPResult", "SeedConfig", "ManhattanConfig",
+    "detect_seed", "detect_manhattan", "angle_between_directions",
+]
+
+
+@dataclass(frozen=True)
+class VanishingPoint:
+    """One vanishing point.
+
+    Attributes
+    ----------
+    uv : (2,) float array or None
+        Pixel position (0-based), None when the VP is at infinity (direction parallel to the
+        image plane).
+    direction : (3,) float array
+        Unit direction in the camera frame (x right, y down, z forward), ``direction[2] >= 0``.
+    cov : (2, 2) float array
+        Pixel covariance of ``uv`` (the EKF's measurement noise Q); all ``inf`` when ``uv`` is
+        None.
+    inliers : (n,) int array
+        Indices into :attr:`VPResult.segments` of the segments that support this VP.
+    score : float
+        Support: the summed length in pixels of the inlier segments.
+    """
+
+    uv: np.ndarray | None
+    direction: np.ndarray
+    cov: np.ndarray
+    inliers: np.ndarray
+    score: float
+
+
+@dataclass(frozen=True)
+class VPResult:
+    """Vanishing points found in one image.
+
+    Attributes
+    ----------
+    vps : list of VanishingPoint
+        Best (largest score) first; empty when nothing was found.
+    segments : (M, 4) float array
+        The line segments ``x1, y1, x2, y2`` the detector used (pixels).
+    ms : float
+        Wall-clock milliseconds spent in the detector.
+    """
+
+    vps: list[VanishingPoint]
+    segments: np.ndarray
+    ms: float
+
+    def forward(self) -> VanishingPoint | None:
+        """Return the VP whose direction is closest to the optical axis (largest |dz|)."""
+        if not self.vps:
+            return None
+        return max(self.vps, key=lambda vp: abs(float(vp.direction[2])))
+
+
+@dataclass(frozen=True)
+class SeedConfig:
+    """Parameters of the seed paper's detector (Canny, HoughLinesP, axis removal, eq. (1)-(4)).
+
+    Attributes
+    ----------
+    canny_low, canny_high : float
+        Canny hysteresis thresholds.
+    hough_rho, hough_theta_deg, hough_threshold, min_line_length, max_line_gap :
+        ``cv2.HoughLinesP`` parameters (pixels, degrees, votes, pixels, pixels).
+    axis_tolerance_deg : float
+        Lines within this angle of the image u or v axis are dropped (doors, posters: lines
+        that do not converge to the corridor's VP).
+    min_lines : int
+        Fewer remaining lines than this -> no VP.
+    """
+
+    canny_low: float = 50.0
+    canny_high: float = 150.0
+    hough_rho: float = 1.0
+    hough_theta_deg: float = 1.0
+    hough_threshold: int = 50
+    min_line_length: float = 30.0
+    max_line_gap: float = 5.0
+    axis_tolerance_deg: float = 10.0
+    min_lines: int = 2
+
+
+@dataclass(frozen=True)
+class ManhattanConfig:
+    """Parameters of :func:`detect_manhattan`.
+
+    Attributes
+    ----------
+    lsd_scale : float
+        LSD's internal image scale (0.5: about 3x faster than OpenCV's default 0.8).
+    min_length : float
+        Segments shorter than this (pixels) are ignored.
+    max_segments : int
+        Keep at most this many (longest) segments: bounds the scoring cost.
+    n_hypotheses : int
+        RANSAC hypotheses (minimal 3-segment Manhattan frames).
+    seed : int
+        Seed of the hypothesis sampler (results are deterministic).
+    score_angle_deg : float
+        Angle (segment vs. line from its midpoint to the VP) at which a segment stops
+        contributing to a hypothesis score (linear fall-off from 0).
+    inlier_angle_deg : float
+        Inlier threshold of the same angle for the refinement.
+    refine_iterations : int
+        Re-assignment + Gauss-Newton rounds of the refinement.
+    min_inliers : int
+        A VP needs this many inlier segments to count as observed. With two observed VPs the
+        third is implied by orthogonality and reported too (with its own, larger, covariance).
+    orthogonal : bool
+        True: the three VPs are the columns of one rotation fitted jointly. False: after the
+        joint fit each observed VP is refined on its own inliers (no orthogonality), which
+        follows non-orthogonal scene structure and slightly miscalibrated cameras.
+    """
+
+    lsd_scale: float = 0.5
+    min_length: float = 15.0
+    max_segments: int = 300
+    n_hypotheses: int = 300
+    seed: int = 0
+    score_angle_deg: float = 3.0
+    inlier_angle_deg: float = 2.0
+    refine_iterations: int = 3
+    min_inliers: int = 4
+    orthogonal: bool = True
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def angle_between_directions(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Return the angle in degrees (0..90) between directions ``a`` and ``b``, ignoring sign."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    cos = np.abs(np.sum(a * b, axis=-1)) / (np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1))
+    return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
+
+
+def _nominal_K(shape: tuple[int, ...]) -> np.ndarray:
+    h, w = shape[:2]
+    f = float(max(h, w))
+    return np.array([[f, 0.0, (w - 1) / 2.0], [0.0, f, (h - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def _check_K(K: np.ndarray) -> np.ndarray:
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
+        raise ValueError(f"K must be a finite, invertible 3x3 camera matrix, got {K!r}")
+    return K
+
+
+def _make_vp(direction: np.ndarray, cov_dir: np.ndarray, K: np.ndarray, inliers: np.ndarray,
+             score: float) -> VanishingPoint:
+    """Build a VanishingPoint from a direction and its 3x3 covariance (first-order to pixels)."""
+    d = direction / np.linalg.norm(direction)
+    if d[2] < 0:
+        d = -d
+    p = K @ d
+    if abs(p[2]) < 1e-9 * np.linalg.norm(p):
+        uv = None
+        cov = np.full((2, 2), np.inf)
+    else:
+        uv = p[:2] / p[2]
+        # d(uv)/d(d) = (K[:2] - uv K[2]) / p_z
+        J = (K[:2] - np.outer(uv, K[2])) / p[2]
+        cov = J @ cov_dir @ J.T
+        cov = 0.5 * (cov + cov.T)
+    return VanishingPoint(uv=uv, direction=d, cov=cov, inliers=np.asarray(inliers, dtype=np.int64),
+                          score=float(score))
+
+
+def _empty(segments: np.ndarray, start: float) -> VPResult:
+    return VPResult(vps=[], segments=segments, ms=(time.perf_counter() - start) * 1e3)
+
+
+# ----------------------------------------------------------------------------- seed method
+
+
+def detect_seed(image: np.ndarray, config: SeedConfig = SeedConfig(),
+                K: np.ndarray | None = None) -> VPResult:
+    """Return the single VP of the seed paper's detector (Canny + Hough + least squares).
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) array
+        Grayscale or BGR image.
+    config : SeedConfig
+    K : (3, 3) array, optional
+        Camera matrix, only used to express the VP as a direction; without it a nominal
+        camera (focal length = max(H, W), centred principal point) is assumed.
+
+    Returns
+    -------
+    VPResult
+        At most one VP; its covariance is the least-squares covariance ``s^2 (A^T A)^-1`` with
+        ``s^2`` the residual variance of the line equations; inliers are all kept lines.
+    """
+    start = time.perf_counter()
+    gray = to_gray_u8(image)
+    K = _nominal_K(gray.shape) if K is None else _check_K(K)
+    segments = hough_segments(gray, config.canny_low, config.canny_high, config.hough_rho,
+                              np.radians(config.hough_theta_deg), config.hough_threshold,
+                              config.min_line_length, config.max_line_gap)
+    if len(segments) == 0:
+        return _empty(segments, start)
+    dx = segments[:, 2] - segments[:, 0]
+    dy = segments[:, 3] - segments[:, 1]
+    # angle of each line to the u axis folded into [0, 90] degrees
+    folded = np.degrees(np.arctan2(np.abs(dy), np.abs(dx)))
+    tol = config.axis_tolerance_deg
+    keep = np.flatnonzero((folded > tol) & (folded < 90.0 - tol))
+    if len(keep) < max(config.min_lines, 2):
+        return _empty(segments, start)
+    kept = segments[keep]
+    # eq. (1): a u + b v = c with (a, b) the unit line normal, so residuals are pixel distances
+    a = kept[:, 3] - kept[:, 1]
+    b = kept[:, 0] - kept[:, 2]
+    norm = np.hypot(a, b)
+    a, b = a / norm, b / norm
+    c = a * kept[:, 0] + b * kept[:, 1]
+    A = np.column_stack([a, b])  # eq. (2)-(3)
+    if np.linalg.matrix_rank(A) < 2:
+        return _empty(segments, start)
+    uv = np.linalg.pinv(A) @ c  # eq. (4): u = A^+ c, A^+ = (A^T A)^-1 A^T
+    residual = A @ uv - c
+    dof = max(len(kept) - 2, 1)
+    cov = (residual @ residual / dof) * np.linalg.inv(A.T @ A)
+    direction = np.linalg.solve(K, np.array([uv[0], uv[1], 1.0]))
+    direction /= np.linalg.norm(direction)
+    if direction[2] < 0:
+        direction = -direction
+    vp = VanishingPoint(uv=uv, direction=direction, cov=0.5 * (cov + cov.T), inliers=keep,
+                        score=float(np.sum(norm)))
+    return VPResult(vps=[vp], segments=segments, ms=(time.perf_counter() - start) * 1e3)
+
+
+# ----------------------------------------------------------------------------- Manhattan
+
+
+@dataclass(frozen=True)
+class _Segments:
+    """Per-segment geometry used by the Manhattan detector (all arrays length M)."""
+
+    xy: np.ndarray        # (M, 4) pixels
+    mid: np.ndarray       # (M, 2) midpoints, pixels
+    tangent: np.ndarray   # (M, 2) unit directions, pixels
+    length: np.ndarray    # (M,) pixels
+    h1: np.ndarray        # (M, 3) K^-1 [p1, 1]
+    h2: np.ndarray        # (M, 3) K^-1 [p2, 1]
+    normal: np.ndarray    # (M, 3) unit normal of the interpretation plane (camera frame)
+    cross_norm: np.ndarray  # (M,) |h1 x h2|
+    perp: np.ndarray      # (M, 3) K^-1 [-t_y, t_x, 0]: endpoint shift across the segment
+
+
+def _segment_geometry(xy: np.ndarray, K: np.ndarray) -> _Segments:
+    Kinv = np.linalg.inv(K)
+    p1, p2 = xy[:, :2], xy[:, 2:]
+    delta = p2 - p1
+    length = np.hypot(delta[:, 0], delta[:, 1])
+    tangent = delta / length[:, None]
+    ones = np.ones((len(xy), 1))
+    h1 = np.hstack([p1, ones]) @ Kinv.T
+    h2 = np.hstack([p2, ones]) @ Kinv.T
+    cross = np.cross(h1, h2)
+    cross_norm = np.linalg.norm(cross, axis=1)
+    perp_px = np.column_stack([-tangent[:, 1], tangent[:, 0], np.zeros(len(xy))])
+    return _Segments(xy=xy, mid=0.5 * (p1 + p2), tangent=tangent, length=length, h1=h1, h2=h2,
+                     normal=cross / cross_norm[:, None], cross_norm=cross_norm,
+                     perp=perp_px @ Kinv.T)
+
+
+def _sin_to_vp(seg: _Segments, directions: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """Return |sin| of the image angle between each segment and the line from its midpoint to
+    each VP: (..., M) for directions (..., 3). Works for VPs at infinity."""
+    v = directions @ K.T  # homogeneous pixel VPs
+    to_vp_x = v[..., 0:1] - seg.mid[:, 0] * v[..., 2:3]
+    to_vp_y = v[..., 1:2] - seg.mid[:, 1] * v[..., 2:3]
+    cross = seg.tangent[:, 0] * to_vp_y - seg.tangent[:, 1] * to_vp_x
+    return np.abs(cross) / np.maximum(np.hypot(to_vp_x, to_vp_y), 1e-12)
+
+
+def _hypotheses(seg: _Segments, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Return (H, 3, 3) candidate frames [d1, d2, d3] from length-weighted segment triples:
+    two segments meet at d1, the third fixes d2 orthogonal to d1, d3 = d1 x d2."""
+    m = len(seg.length)
+    prob = seg.length / seg.length.sum()
+    idx = rng.choice(m, size=(n, 3), p=prob)
+    n_i, n_j, n_k = seg.normal[idx[:, 0]], seg.normal[idx[:, 1]], seg.normal[idx[:, 2]]
+    d1 = np.cross(n_i, n_j)
+    d2 = np.cross(d1, n_k)
+    norm1 = np.linalg.norm(d1, axis=1)
+    norm2 = np.linalg.norm(d2, axis=1)
+    # near-parallel interpretation planes give an ill-defined intersection
+    ok = (norm1 > 1e-3) & (norm2 > 1e-3 * np.maximum(norm1, 1e-300))
+    ok &= (idx[:, 0] != idx[:, 1]) & (idx[:, 2] != idx[:, 0]) & (idx[:, 2] != idx[:, 1])
+    d1 = d1[ok] / norm1[ok, None]
+    d2 = d2[ok] / norm2[ok, None]
+    d3 = np.cross(d1, d2)
+    return np.stack([d1, d2, d3], axis=1)
+
+
+def _best_frame(seg: _Segments, K: np.ndarray, config: ManhattanConfig) -> np.ndarray | None:
+    rng = np.random.default_rng(config.seed)
+    frames = _hypotheses(seg, config.n_hypotheses, rng)
+    if len(frames) == 0:
+        return None
+    sin_score = np.sin(np.radians(config.score_angle_deg))
+    sin = _sin_to_vp(seg, frames, K)  # (H, 3, M)
+    support = np.clip(1.0 - sin.min(axis=1) / sin_score, 0.0, None)
+    scores = support @ seg.length
+    return frames[int(np.argmax(scores))].T  # columns are directions
+
+
+def _residual_scale(seg: _Segments, idx: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Return s_i, the std of n_i . d per pixel of endpoint noise across the segment.
+
+    First order: n.d = det(h1, h2, d) / |h1 x h2|; at an inlier (n.d ~ 0) only the numerator's
+    derivative matters: d/dh1 = h2 x d, d/dh2 = d x h1, each endpoint moved along ``perp``.
+    """
+    h1, h2, perp = seg.h1[idx], seg.h2[idx], seg.perp[idx]
+    g1 = np.sum(np.cross(h2, d) * perp, axis=1)
+    g2 = np.sum(np.cross(d, h1) * perp, axis=1)
+    return np.sqrt(g1 ** 2 + g2 ** 2) / seg.cross_norm[idx]
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def _expmap(w: np.ndarray) -> np.ndarray:
+    theta = np.linalg.norm(w)
+    W = _skew(w)
+    if theta < 1e-12:
+        return np.eye(3) + W
+    return (np.eye(3) + np.sin(theta) / theta * W
+            + (1.0 - np.cos(theta)) / theta ** 2 * W @ W)
+
+
+def _assign(seg: _Segments, R: np.ndarray, K: np.ndarray, sin_inlier: float):
+    sin = _sin_to_vp(seg, R.T, K)  # (3, M)
+    label = np.argmin(sin, axis=0)
+    inlier = sin[label, np.arange(sin.shape[1])] < sin_inlier
+    return label, inlier
+
+
+def _fit_rotation(seg: _Segments, R: np.ndarray, label: np.ndarray, inlier: np.ndarray,
+                  iterations: int = 3):
+    """Weighted Gauss-Newton of R (columns = VP directions) on r_i = n_i . R e_k(i).
+
+    Returns R, the 3x3 information matrix H = J^T J (per unit pixel variance) and the
+    residual variance sigma^2 (pixels^2)."""
+    idx = np.flatnonzero(inlier)
+    k = label[idx]
+    n = seg.normal[idx]
+    H = np.zeros((3, 3))
+    chi2 = 0.0
+    for _ in range(iterations):
+        d = R.T[k]  # (N, 3) direction of each inlier's VP
+        s = _residual_scale(seg, idx, d)
+        r = np.sum(n * d, axis=1) / s
+        # left perturbation R <- Exp(w) R: d r_i / d w = (d_k x n_i) / s_i
+        J = np.cross(d, n) / s[:, None]
+        H = J.T @ J
+        step = -np.linalg.solve(H, J.T @ r)
+        R = _expmap(step) @ R
+        if np.linalg.norm(step) < 1e-10:
+            break
+    d = R.T[k]
+    s = _residual_scale(seg, idx, d)
+    r = np.sum(n * d, axis=1) / s
+    J = np.cross(d, n) / s[:, None]
+    H = J.T @ J
+    chi2 = float(r @ r)
+    sigma2 = chi2 / max(len(idx) - 3, 1)
+    return R, H, sigma2
+
+
+def _fit_direction(seg: _Segments, d: np.ndarray, idx: np.ndarray, iterations: int = 3):
+    """Weighted fit of one direction to its inliers (no orthogonality): minimise
+    sum (n_i . d)^2 / s_i^2 over unit d. Returns d and its 3x3 covariance."""
+    n = seg.normal[idx]
+    for _ in range(iterations):
+        s = _residual_scale(seg, idx, d)
+        M = (n / s[:, None] ** 2).T @ n
+        d_new = np.linalg.eigh(M)[1][:, 0]
+        d = d_new if d_new @ d >= 0 else -d_new
+    s = _residual_scale(seg, idx, d)
+    r = (n @ d) / s
+    sigma2 = float(r @ r) / max(len(idx) - 2, 1)
+    # tangent-plane information B^T M B, B an orthonormal basis of d's orthogonal complement
+    B = np.linalg.svd(d[None, :])[2][1:].T
+    M = (n / s[:, None] ** 2).T @ n
+    cov_t = sigma2 * np.linalg.inv(B.T @ M @ B)
+    return d, B @ cov_t @ B.T
+
+
+def detect_manhattan(image: np.ndarray, K: np.ndarray,
+                     config: ManhattanConfig = ManhattanConfig()) -> VPResult:
+    """Return up to three orthogonal (Manhattan) vanishing points with pixel covariances.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) array
+        Grayscale or BGR image.
+    K : (3, 3) array
+        Camera matrix (pixels).
+    config : ManhattanConfig
+
+    Returns
+    -------
+    VPResult
+        ``vps`` best first (by inlier length), empty when fewer than ``min_inliers``
+        consistent segments exist (blank image, too few segments). When two VPs are observed,
+        the third (implied by orthogonality) is reported as well.
+    """
+    start = time.perf_counter()
+    K = _check_K(K)
+    gray = to_gray_u8(image)
+    xy = lsd_segments(gray, scale=config.lsd_scale, min_length=config.min_length,
+                      max_segments=config.max_segments)
+    if len(xy) < max(config.min_inliers, 3):
+        return _empty(xy, start)
+    seg = _segment_geometry(xy, K)
+    good = seg.cross_norm > 1e-12
+    if not np.all(good):
+        xy = xy[good]
+        seg = _segment_geometry(xy, K)
+    R = _best_frame(seg, K, config)
+    if R is None:
+        return _empty(xy, start)
+    sin_inlier = np.sin(np.radians(config.inlier_angle_deg))
+    H = np.zeros((3, 3))
+    sigma2 = 0.0
+    counts = np.zeros(3, dtype=int)
+    for _ in range(max(config.refine_iterations, 1)):
+        label, inlier = _assign(seg, R, K, sin_inlier)
+        counts = np.bincount(label[inlier], minlength=3)
+        if np.count_nonzero(counts >= config.min_inliers) < 2:
+            break
+        R, H, sigma2 = _fit_rotation(seg, R, label, inlier)
+    label, inlier = _assign(seg, R, K, sin_inlier)
+    counts = np.bincount(label[inlier], minlength=3)
+    observed = np.flatnonzero(counts >= config.min_inliers)
+    vps: list[VanishingPoint] = []
+    if len(observed) >= 2:
+        R, H, sigma2 = _fit_rotation(seg, R, label, inlier, iterations=1)
+        cov_w = sigma2 * np.linalg.inv(H)
+        for k in range(3):
+            members = np.flatnonzero(inlier & (label == k))
+            d = R[:, k]
+            cov_d = _skew(d) @ cov_w @ _skew(d).T
+            if not config.orthogonal and len(members) >= config.min_inliers:
+                d, cov_d = _fit_direction(seg, d, members)
+            vps.append(_make_vp(d, cov_d, K, members, seg.length[members].sum()))
+    elif len(observed) == 1:
+        k = int(observed[0])
+        members = np.flatnonzero(inlier & (label == k))
+        d, cov_d = _fit_direction(seg, R[:, k], members)
+        vps.append(_make_vp(d, cov_d, K, members, seg.length[members].sum()))
+    vps.sort(key=lambda vp: -vp.score)
+    return VPResult(vps=vps, segments=xy, ms=(time.perf_counter() - start) * 1e3)
