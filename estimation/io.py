@@ -168,39 +168,44 @@ def read_g2o(path: PathLike) -> PoseGraph:
     return graph
 
 
-def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
-    """Write node poses and between factors with ``gtsam.writeG2o``; return what was dropped.
+def _g2o_numbers(values) -> str:
+    return " ".join(repr(float(v)) for v in values)
 
-    g2o (as GTSAM writes it) holds 3-D vertices and Gaussian SE3 edges only: priors,
-    robust kernels, custom factors, timestamps and scans are not written.
+
+def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
+    """Write node poses and between factors as a 3-D g2o file; return what was dropped.
+
+    The layout is the one ``gtsam.writeG2o`` writes and ``gtsam.readG2o(path, True)``
+    reads (``VERTEX_SE3:QUAT id x y z qx qy qz qw``; ``EDGE_SE3:QUAT i j x y z qx qy qz qw``
+    and the upper triangle of the information matrix in g2o's [t, R] order), but with
+    every number in shortest round-trip form: GTSAM's own writer prints 6 significant
+    digits and so moves poses by up to ~1e-6. Priors, robust kernels, custom factors,
+    timestamps and scans have no place in the file and are dropped.
     """
-    path = Path(path)
-    factors = gtsam.NonlinearFactorGraph()
     dropped = _Dropped()
-    values = gtsam.Values()
-    id_of = {node_id: node_id for node_id in graph.nodes}
+    lines = []
     for node_id in graph.sorted_ids():
-        values.insert(id_of[node_id], graph.nodes[node_id].pose)
+        tx, ty, tz, qx, qy, qz, qw = pose_to_tum(graph.nodes[node_id].pose)
+        lines.append(f"VERTEX_SE3:QUAT {node_id} {_g2o_numbers((tx, ty, tz, qx, qy, qz, qw))}")
+    # g2o orders the tangent [t, R]; GTSAM's Pose3 tangent is [R, t].
+    reorder = np.r_[3:6, 0:3]
+    upper = np.triu_indices(6)
     for record in graph.factors:
         if record.measured is None or len(record.nodes) != 2:
             dropped.add(f"{record.kind} factors")
             continue
         if record.robust is not None:
             dropped.add("robust kernels (edges written as Gaussian)")
-        noise = gtsam.noiseModel.Gaussian.Covariance(record.covariance)
+        info = np.linalg.inv(record.covariance)[np.ix_(reorder, reorder)]
         i, j = record.nodes
-        factors.add(gtsam.BetweenFactorPose3(i, j, record.measured, noise))
+        lines.append(f"EDGE_SE3:QUAT {i} {j} {_g2o_numbers(pose_to_tum(record.measured))} "
+                     f"{_g2o_numbers(info[upper])}")
     if any(node.scan is not None for node in graph.nodes.values()):
         dropped.add("scans")
     if any(node.timestamp != 0.0 for node in graph.nodes.values()):
         dropped.add("timestamps")
-    tmp = path.with_name(f".{path.name}.tmp")
-    try:
-        gtsam.writeG2o(factors, values, str(tmp))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_write(path, "w") as handle:
+        handle.write("\n".join(lines) + "\n")
     return dropped.items()
 
 

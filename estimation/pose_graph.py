@@ -271,13 +271,13 @@ class PoseGraph:
 
     # ---------------------------------------------------------------- solving
     def optimize(self, method: str = "lm", max_iterations: int = 100,
-                 relative_tolerance: float = 1e-9) -> OptimizeResult:
+                 relative_tolerance: float = 1e-9, isam2_extra_steps: int = 0) -> OptimizeResult:
         """Optimise the node poses in place and return the errors before and after.
 
         ``method="lm"`` runs Levenberg-Marquardt on the whole graph. ``method="isam2"``
         feeds the nodes and factors added since the previous iSAM2 call to an
         incremental :class:`gtsam.ISAM2` and updates it (call it after each new node for
-        online use). Without any prior factor the first node is pinned (``GAUGE_SIGMA``).
+        online use); ``isam2_extra_steps`` adds relinearisation-only updates. Without any prior factor the first node is pinned (``GAUGE_SIGMA``).
         """
         if not self.nodes:
             raise EstimationError("cannot optimise an empty pose graph")
@@ -292,8 +292,8 @@ class PoseGraph:
             iterations = int(optimizer.iterations())
             self._isam = None
         elif method == "isam2":
-            estimate = self._isam2_update()
-            iterations = 1
+            estimate = self._isam2_update(extra_steps=isam2_extra_steps)
+            iterations = 1 + isam2_extra_steps
         else:
             raise EstimationError(f"unknown optimisation method {method!r}: use 'lm' or 'isam2'")
         for node_id, node in self.nodes.items():
@@ -301,9 +301,14 @@ class PoseGraph:
         self._marginals = None
         return OptimizeResult(method, initial_error, self.error(), iterations)
 
-    def _isam2_update(self) -> gtsam.Values:
+    def _isam2_update(self, extra_steps: int = 0) -> gtsam.Values:
         if self._isam is None:
-            self._isam = gtsam.ISAM2(gtsam.ISAM2Params())
+            params = gtsam.ISAM2Params()
+            # Relinearise at every update (GTSAM's default waits 10 updates), so a few
+            # updates reach the batch optimum on small graphs.
+            params.relinearizeSkip = 1
+            params.setRelinearizeThreshold(0.001)
+            self._isam = gtsam.ISAM2(params)
             self._isam_nodes = set()
             self._isam_factor_count = 0
             self._isam_gauge_done = False
@@ -320,6 +325,8 @@ class PoseGraph:
                 self._isam_nodes.add(node_id)
         self._isam_factor_count = len(self.factors)
         self._isam.update(new_factors, new_values)
+        for _ in range(max(0, extra_steps)):
+            self._isam.update()
         return self._isam.calculateEstimate()
 
     def _marginals_now(self) -> gtsam.Marginals:

@@ -55,9 +55,10 @@ def simulate_loop_graph(rng: np.random.Generator, n_poses: int = 24, *,
     loop_cov = np.diag(np.repeat(np.square(loop_sigmas), 3))
     prior_cov = np.diag(np.repeat(np.square(prior_sigmas), 3))
     graph = PoseGraph()
+    # The prior is a measurement like any other: drawn around the truth with its covariance.
     first = truth[0].compose(sample_pose_noise(rng, prior_cov))
     graph.add_node(0, first, timestamp=0.0)
-    graph.add_prior(0, truth[0], prior_cov)
+    graph.add_prior(0, first, prior_cov * model_scale)
     pose = first
     for k in range(1, n_poses):
         measured = truth[k - 1].between(truth[k]).compose(sample_pose_noise(rng, odo_cov))

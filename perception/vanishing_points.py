@@ -279,6 +279,7 @@ class _Segments:
     normal: np.ndarray    # (M, 3) unit normal of the interpretation plane (camera frame)
     cross_norm: np.ndarray  # (M,) |h1 x h2|
     perp: np.ndarray      # (M, 3) K^-1 [-t_y, t_x, 0]: endpoint shift across the segment
+    centre: np.ndarray    # (2,) principal point, the origin used for float32 scoring
 
 
 def _segment_geometry(xy: np.ndarray, K: np.ndarray) -> _Segments:
@@ -295,17 +296,29 @@ def _segment_geometry(xy: np.ndarray, K: np.ndarray) -> _Segments:
     perp_px = np.column_stack([-tangent[:, 1], tangent[:, 0], np.zeros(len(xy))])
     return _Segments(xy=xy, mid=0.5 * (p1 + p2), tangent=tangent, length=length, h1=h1, h2=h2,
                      normal=cross / cross_norm[:, None], cross_norm=cross_norm,
-                     perp=perp_px @ Kinv.T)
+                     perp=perp_px @ Kinv.T, centre=K[:2, 2].copy())
 
 
-def _sin_to_vp(seg: _Segments, directions: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """Return |sin| of the image angle between each segment and the line from its midpoint to
-    each VP: (..., M) for directions (..., 3). Works for VPs at infinity."""
-    v = directions @ K.T  # homogeneous pixel VPs
-    to_vp_x = v[..., 0:1] - seg.mid[:, 0] * v[..., 2:3]
-    to_vp_y = v[..., 1:2] - seg.mid[:, 1] * v[..., 2:3]
-    cross = seg.tangent[:, 0] * to_vp_y - seg.tangent[:, 1] * to_vp_x
-    return np.abs(cross) / np.maximum(np.hypot(to_vp_x, to_vp_y), 1e-12)
+def _sin2_to_vp(seg: _Segments, directions: np.ndarray, K: np.ndarray,
+                dtype=np.float64) -> np.ndarray:
+    """Return sin^2 of the image angle between each segment and the line from its midpoint to
+    each VP: (..., M) for directions (..., 3). Works for VPs at infinity.
+
+    With v = K d the homogeneous VP, the numerator t x (v_xy - m v_z) is the segment's
+    (unit-normal) line dotted with v, and the squared denominator |v_xy - m v_z|^2 expands into
+    products with m: both are matrix products, which keeps the RANSAC scoring cheap."""
+    lead = directions.shape[:-1]
+    v = (directions.reshape(-1, 3) @ K.T).astype(dtype)  # (P, 3) homogeneous pixel VPs
+    # centre pixel coordinates on the image so that float32 keeps enough digits
+    t, m = seg.tangent, seg.mid - seg.centre
+    v[:, :2] -= seg.centre.astype(dtype) * v[:, 2:3]
+    line = np.column_stack([-t[:, 1], t[:, 0], t[:, 1] * m[:, 0] - t[:, 0] * m[:, 1]])
+    num = v @ line.T.astype(dtype)  # (P, M)
+    vz = v[:, 2:3]
+    den2 = (np.sum(v[:, :2] ** 2, axis=1)[:, None] - 2.0 * vz * (v[:, :2] @ m.T.astype(dtype))
+            + vz ** 2 * np.sum(m ** 2, axis=1).astype(dtype))
+    sin2 = num * num / np.maximum(den2, dtype(1e-24) if dtype is np.float64 else dtype(1e-30))
+    return sin2.reshape(*lead, len(m))
 
 
 def _hypotheses(seg: _Segments, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -333,10 +346,11 @@ def _best_frame(seg: _Segments, K: np.ndarray, config: ManhattanConfig) -> np.nd
     frames = _hypotheses(seg, config.n_hypotheses, rng)
     if len(frames) == 0:
         return None
-    sin_score = np.sin(np.radians(config.score_angle_deg))
-    sin = _sin_to_vp(seg, frames, K)  # (H, 3, M)
-    support = np.clip(1.0 - sin.min(axis=1) / sin_score, 0.0, None)
-    scores = support @ seg.length
+    sin2_score = np.float32(np.sin(np.radians(config.score_angle_deg)) ** 2)
+    sin2 = _sin2_to_vp(seg, frames, K, dtype=np.float32)  # (H, 3, M)
+    # soft inlier count: quadratic fall-off in the angle, zero beyond score_angle_deg
+    support = np.maximum(np.float32(1.0) - sin2.min(axis=1) / sin2_score, np.float32(0.0))
+    scores = support @ seg.length.astype(np.float32)
     return frames[int(np.argmax(scores))].T  # columns are directions
 
 
@@ -366,9 +380,9 @@ def _expmap(w: np.ndarray) -> np.ndarray:
 
 
 def _assign(seg: _Segments, R: np.ndarray, K: np.ndarray, sin_inlier: float):
-    sin = _sin_to_vp(seg, R.T, K)  # (3, M)
-    label = np.argmin(sin, axis=0)
-    inlier = sin[label, np.arange(sin.shape[1])] < sin_inlier
+    sin2 = _sin2_to_vp(seg, R.T, K)  # (3, M)
+    label = np.argmin(sin2, axis=0)
+    inlier = sin2[label, np.arange(sin2.shape[1])] < sin_inlier ** 2
     return label, inlier
 
 

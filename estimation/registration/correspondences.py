@@ -11,6 +11,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..errors import EstimationError
+from . import _kernels
 
 
 def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
@@ -28,13 +29,11 @@ def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
         return np.broadcast_to(np.eye(3), (n, 3, 3)).copy()
     k = int(min(max(k, 3), n))
     tree = cKDTree(points) if tree is None else tree
-    _, idx = tree.query(points, k=k)
+    _, idx = tree.query(points, k=k, workers=-1)
     neigh = points[idx]                                   # (N, k, 3)
     centred = neigh - neigh.mean(axis=1, keepdims=True)
-    cov = np.einsum("nki,nkj->nij", centred, centred) / k
-    _, vecs = np.linalg.eigh(cov)                        # ascending eigenvalues
-    reg = np.array([epsilon, 1.0, 1.0])
-    return np.einsum("nij,j,nkj->nik", vecs, reg, vecs)
+    cov = np.swapaxes(centred, 1, 2) @ centred / k
+    return _kernels.regularise_covariances(np.ascontiguousarray(cov), float(epsilon))
 
 
 @dataclass(frozen=True)
@@ -68,7 +67,7 @@ def nearest_correspondences(source_in_target: np.ndarray, target_tree: cKDTree,
                             d_max: float) -> Correspondences:
     """Return nearest-neighbour pairs closer than ``d_max`` (ICP's omega_i of eq. (2))."""
     n = len(source_in_target)
-    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max)
+    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max, workers=-1)
     ok = np.isfinite(dist)
     src = np.nonzero(ok)[0]
     return Correspondences(src, idx[ok].astype(np.int64), np.ones(len(src)), dist[ok], n)
@@ -134,7 +133,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
             rows = np.nonzero(cls_of_point == c)[0]
             if len(rows) == 0:
                 continue
-            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max)
+            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
+                                 workers=-1)
             ok = np.isfinite(dist)
             if not ok.any():
                 continue

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from . import _kernels
+
 
 def skew(v: np.ndarray) -> np.ndarray:
     """Return the (..., 3, 3) cross-product matrices of the (..., 3) vectors ``v``."""
@@ -47,8 +49,8 @@ class GicpTerms:
 
     Attributes
     ----------
-    residuals : (M, 3) whitened residuals U_k^T r_k
-    jacobians : (M, 3, 6) whitened Jacobians U_k^T dr_k/dxi, or None
+    residuals : (M, 3) whitened residuals U_k^T r_k (times sqrt(w_k) when weights are given)
+    jacobians : (M, 3, 6) whitened Jacobians U_k^T dr_k/dxi (same scaling), or None
     mahalanobis : (M,) e_k = ||r_k||^2_{C_k}
     """
 
@@ -59,29 +61,26 @@ class GicpTerms:
 
 def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Return (M, 3, 3) ``U_k^T`` with ``U_k U_k^T = (Sigma_t + R Sigma_s R^T)^-1``."""
-    C = cov_target + np.einsum("ij,mjk,lk->mil", R, cov_source, R)
-    info = np.linalg.inv(C)
-    return np.swapaxes(np.linalg.cholesky(0.5 * (info + np.swapaxes(info, 1, 2))), 1, 2)
+    return _kernels.whitening(np.ascontiguousarray(cov_target, dtype=float),
+                              np.ascontiguousarray(cov_source, dtype=float),
+                              np.ascontiguousarray(R, dtype=float))
 
 
 def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
-               jacobians: bool = True) -> GicpTerms:
+               jacobians: bool = True, sqrt_weights: np.ndarray | None = None) -> GicpTerms:
     """Return whitened residuals (and Jacobians) of eq. (3) at the 4x4 ``T``.
 
     ``source`` and ``target`` are the matched (M, 3) points, ``Ut`` the (M, 3, 3) whitening
     ``U_k^T``. Jacobian of ``r = x_t - R x_s - t`` for ``T Exp(xi)``: ``[R [x_s]_x, -R]``.
+    With ``sqrt_weights`` residuals and Jacobians are scaled by them (``mahalanobis`` is not).
     """
-    R = T[:3, :3]
-    r = target - (source @ R.T + T[:3, 3])
-    rw = np.einsum("mij,mj->mi", Ut, r)
-    e = np.einsum("mi,mi->m", rw, rw)
-    J = None
-    if jacobians:
-        UR = Ut @ R                                            # (M, 3, 3)
-        J = np.empty((len(source), 3, 6))
-        J[:, :, :3] = UR @ skew(source)
-        J[:, :, 3:] = -UR
-    return GicpTerms(rw, J, e)
+    sw = np.ones(len(source)) if sqrt_weights is None else np.ascontiguousarray(sqrt_weights,
+                                                                              dtype=float)
+    rw, J, e = _kernels.gicp_terms(np.ascontiguousarray(T, dtype=float),
+                                   np.ascontiguousarray(source, dtype=float),
+                                   np.ascontiguousarray(target, dtype=float),
+                                   np.ascontiguousarray(Ut, dtype=float), sw, bool(jacobians))
+    return GicpTerms(rw, J if jacobians else None, e)
 
 
 class BatchedGicpFactor:
@@ -111,10 +110,11 @@ class BatchedGicpFactor:
 
     def _error(self, this: gtsam.CustomFactor, values: gtsam.Values, H) -> np.ndarray:
         T = values.atPose3(self.key).matrix()
-        terms = gicp_terms(T, self.source, self.target, self.Ut, jacobians=H is not None)
+        terms = gicp_terms(T, self.source, self.target, self.Ut, jacobians=H is not None,
+                           sqrt_weights=self.sqrt_w)
         if H is not None:
-            H[0] = (terms.jacobians * self.sqrt_w[:, None, None]).reshape(-1, 6)
-        return (terms.residuals * self.sqrt_w[:, None]).reshape(-1)
+            H[0] = terms.jacobians.reshape(-1, 6)
+        return terms.residuals.reshape(-1)
 
 
 def solve_weighted(T: np.ndarray, factor: BatchedGicpFactor, optimizer: str = "gn",

@@ -55,6 +55,10 @@ class RegistrationConfig:
     top_classes : classes per source point that get a correspondence in Semantic-ICP
     min_inliers : fewer correspondences than this -> converged=False
     covariance : "sandwich" (cluster-robust, calibrated), "hessian" (raw inverse Hessian)
+    degeneracy_ratio : point-to-plane information below this share of the largest eigenvalue
+        marks a direction unconstrained
+    cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
+        times the median distance to the k-th neighbour in the target
     """
 
     max_correspondence_distance: float = 0.3
@@ -72,6 +76,8 @@ class RegistrationConfig:
     min_inliers: int = 12
     covariance: str = "sandwich"
     degeneracy_ratio: float = 1e-3
+    cluster_size: float | None = None
+    cluster_factor: float = 4.0
 
     def __post_init__(self):
         if self.max_correspondence_distance <= 0:
@@ -193,6 +199,7 @@ class Registration:
         self._target_cov = target_cov
         self._tree: cKDTree | None = None
         self._index: SemanticIndex | None = None
+        self._block: float | None = None
 
     @staticmethod
     def _probs(probs: np.ndarray, n: int, what: str) -> np.ndarray:
@@ -308,15 +315,17 @@ class Registration:
         src, tgt = self.source[corr.source_idx], self.target[corr.target_idx]
         Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
                        T[:3, :3])
+        e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
+        w = self._weights(e, corr.weights)
         terms = gicp_terms(T, src, tgt, Ut)
-        w = self._weights(terms.mahalanobis, corr.weights)
-        H = np.einsum("m,mji,mjk->ik", w, terms.jacobians, terms.jacobians)
-        # the per-correspondence score w_k J_k^T r_k, summed per target point: source points
-        # sharing a target point share its noise, so they are one cluster (cluster-robust
-        # sandwich); independent clusters are what the outer product assumes
-        scores = np.einsum("m,mji,mj->mi", w, terms.jacobians, terms.residuals)
-        clustered = np.zeros((len(self.target), 6))
-        np.add.at(clustered, corr.target_idx, scores)
+        Jflat = (terms.jacobians * np.sqrt(w)[:, None, None]).reshape(-1, 6)
+        H = Jflat.T @ Jflat
+        # the per-correspondence scores w_k J_k^T r_k are summed per spatial block before the
+        # outer product (a cluster-robust sandwich): neighbouring residuals share target points
+        # and the neighbourhoods their covariances came from, so they are correlated; blocks a
+        # few neighbourhoods wide are close to independent
+        scores = w[:, None] * (np.swapaxes(terms.jacobians, 1, 2) @ terms.residuals[:, :, None])[:, :, 0]
+        clustered = cluster_sums(tgt, scores, self.cluster_size(T, corr))
         B = clustered.T @ clustered
         cov, unconstrained = covariance_from_information(
             H, B if cfg.covariance == "sandwich" else None, self._scale(src),
@@ -330,6 +339,18 @@ class Registration:
             T, cov, H, iterations, inliers, inliers / len(self.source),
             float(np.sqrt(np.mean(dist ** 2))), converged, reason, tuple(cost_log),
             self.method, time.perf_counter() - start)
+
+    def cluster_size(self, T, corr) -> float:
+        """Edge (m) of the blocks of the cluster-robust sandwich."""
+        if self.config.cluster_size is not None:
+            return self.config.cluster_size
+        if self._block is None:
+            # a multiple of the k-neighbourhood radius of the target
+            sample = self.target[:: max(1, len(self.target) // 500)]
+            dist, _ = self.target_tree.query(sample, k=min(self.config.k_neighbours,
+                                                              len(self.target)))
+            self._block = float(self.config.cluster_factor * np.median(dist[:, -1]))
+        return self._block
 
     @staticmethod
     def _scale(points: np.ndarray) -> float:
@@ -350,7 +371,16 @@ class Registration:
         Rn = normals @ R
         J[:, :3] = np.cross(src, Rn)
         J[:, 3:] = -Rn
-        return np.einsum("m,mi,mj->ij", w, J, J)
+        return (J * w[:, None]).T @ J
+
+
+def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndarray:
+    """Return ``values`` (M, d) summed over the cubic blocks of edge ``size`` holding ``points``."""
+    cells = np.floor(points / size).astype(np.int64)
+    _, block = np.unique(cells, axis=0, return_inverse=True)
+    out = np.zeros((int(block.max()) + 1, values.shape[1]))
+    np.add.at(out, block.reshape(-1), values)
+    return out
 
 
 def covariance_from_information(H: np.ndarray, B: np.ndarray | None, scale: float,

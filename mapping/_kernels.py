@@ -1,0 +1,1132 @@
+"""Numba kernels of the octree: keys, the exact ray DDA, batched node updates, queries, file codecs.
+
+The tree lives in flat arrays (see :class:`mapping.octree.OcTree`):
+
+* ``val[n]``   float32 log-odds of node ``n``;
+* ``first[n]`` index of the first of the 8 contiguous child slots of ``n`` (``-1`` = no children);
+* ``cmask[n]`` bit ``i`` set when child ``i`` exists (child ``i`` lives at ``first[n] + i``).
+
+Node 0 is the root; child slots are handed out in blocks of 8 (block ``b`` = slots ``8b..8b+7``;
+block 0 holds the root). Freed blocks go on a stack ``free_blocks`` and are reused.
+
+Everything that decides a log-odds value or a key follows liboctomap 1.9.7's float/double mix
+(../shared/formats/OCTOMAP.md sections 0, 4, 5) so that the maps are bit-identical.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+TREE_DEPTH = 16
+KEY_OFFSET = 32768
+FLT_MAX = np.float32(3.4028234663852886e38)
+DBL_MAX = 1.7976931348623157e308
+
+# --------------------------------------------------------------------------- Morton codes
+
+
+@njit(cache=True, inline="always")
+def _part1by2(v):
+    v = np.uint64(v) & np.uint64(0xFFFF)
+    v = (v | (v << np.uint64(16))) & np.uint64(0x0000FF0000FF)
+    v = (v | (v << np.uint64(8))) & np.uint64(0x00F00F00F00F)
+    v = (v | (v << np.uint64(4))) & np.uint64(0x0C30C30C30C3)
+    v = (v | (v << np.uint64(2))) & np.uint64(0x249249249249)
+    return v
+
+
+@njit(cache=True, inline="always")
+def _compact1by2(v):
+    v = v & np.uint64(0x249249249249)
+    v = (v | (v >> np.uint64(2))) & np.uint64(0x0C30C30C30C3)
+    v = (v | (v >> np.uint64(4))) & np.uint64(0x00F00F00F00F)
+    v = (v | (v >> np.uint64(8))) & np.uint64(0x0000FF0000FF)
+    v = (v | (v >> np.uint64(16))) & np.uint64(0xFFFF)
+    return v
+
+
+@njit(cache=True, inline="always")
+def morton(kx, ky, kz):
+    """Morton code whose 3-bit groups (MSB first) are OctoMap's child indices root -> leaf."""
+    return _part1by2(kx) | (_part1by2(ky) << np.uint64(1)) | (_part1by2(kz) << np.uint64(2))
+
+
+@njit(cache=True)
+def keys_to_codes(keys):
+    n = keys.shape[0]
+    out = np.empty(n, np.uint64)
+    for i in range(n):
+        out[i] = morton(keys[i, 0], keys[i, 1], keys[i, 2])
+    return out
+
+
+@njit(cache=True)
+def codes_to_keys(codes):
+    n = codes.shape[0]
+    out = np.empty((n, 3), np.uint16)
+    for i in range(n):
+        c = codes[i]
+        out[i, 0] = _compact1by2(c)
+        out[i, 1] = _compact1by2(c >> np.uint64(1))
+        out[i, 2] = _compact1by2(c >> np.uint64(2))
+    return out
+
+
+# --------------------------------------------------------------------------- keys
+
+
+@njit(cache=True, inline="always")
+def _key_checked(c, rf):
+    """coordToKeyChecked for one axis: key or -1 (double product, floor, range check)."""
+    f = math.floor(rf * np.float64(c))
+    if f >= -32768.0 and f < 32768.0:
+        return np.int64(f) + 32768
+    return -1
+
+
+@njit(cache=True)
+def coords_to_keys(points, rf):
+    """(N,3) float32 points -> (N,3) int64 keys, -1 where coordToKeyChecked fails."""
+    n = points.shape[0]
+    out = np.empty((n, 3), np.int64)
+    for i in range(n):
+        for a in range(3):
+            out[i, a] = _key_checked(points[i, a], rf)
+    return out
+
+
+@njit(cache=True, inline="always")
+def _key_to_coord(k, res):
+    return (np.float64(np.int64(k) - 32768) + 0.5) * res
+
+
+# --------------------------------------------------------------------------- ray DDA
+
+
+@njit(cache=True, inline="always")
+def _ray_setup(ox, oy, oz, ex, ey, ez, k0, res):
+    """Direction, length, step, tMax, tDelta exactly as computeRayKeys (float direction)."""
+    dx = np.float32(ex - ox)
+    dy = np.float32(ey - oy)
+    dz = np.float32(ez - oz)
+    nsq = np.float32(np.float32(dx * dx + dy * dy) + dz * dz)
+    length = np.float32(math.sqrt(np.float64(nsq)))
+    dx = np.float32(dx / length)
+    dy = np.float32(dy / length)
+    dz = np.float32(dz / length)
+    d = (dx, dy, dz)
+    o = (ox, oy, oz)
+    step = np.zeros(3, np.int64)
+    tmax = np.empty(3, np.float64)
+    tdelta = np.empty(3, np.float64)
+    for i in range(3):
+        di = d[i]
+        if di > 0:
+            step[i] = 1
+        elif di < 0:
+            step[i] = -1
+        if step[i] != 0:
+            border = _key_to_coord(k0[i], res)
+            border += np.float64(np.float32(step[i] * res * 0.5))
+            tmax[i] = (border - np.float64(o[i])) / np.float64(di)
+            tdelta[i] = res / np.float64(abs(di))
+        else:
+            tmax[i] = DBL_MAX
+            tdelta[i] = DBL_MAX
+    return length, step, tmax, tdelta
+
+
+@njit(cache=True)
+def ray_keys(ox, oy, oz, ex, ey, ez, res, out):
+    """computeRayKeys: fill ``out`` (M,3) with the ray's keys; return count (-1 = out of bounds)."""
+    rf = 1.0 / res
+    k0 = np.empty(3, np.int64)
+    k1 = np.empty(3, np.int64)
+    o = (ox, oy, oz)
+    e = (ex, ey, ez)
+    for a in range(3):
+        k0[a] = _key_checked(o[a], rf)
+        k1[a] = _key_checked(e[a], rf)
+        if k0[a] < 0 or k1[a] < 0:
+            return -1
+    if k0[0] == k1[0] and k0[1] == k1[1] and k0[2] == k1[2]:
+        return 0
+    length, step, tmax, tdelta = _ray_setup(ox, oy, oz, ex, ey, ez, k0, res)
+    cur = k0.copy()
+    n = 0
+    if n < out.shape[0]:
+        out[n, 0] = cur[0]
+        out[n, 1] = cur[1]
+        out[n, 2] = cur[2]
+    n += 1
+    while True:
+        if tmax[0] < tmax[1]:
+            dim = 0 if tmax[0] < tmax[2] else 2
+        else:
+            dim = 1 if tmax[1] < tmax[2] else 2
+        cur[dim] = (cur[dim] + step[dim]) & 0xFFFF
+        tmax[dim] += tdelta[dim]
+        if cur[0] == k1[0] and cur[1] == k1[1] and cur[2] == k1[2]:
+            break
+        if min(tmax[0], min(tmax[1], tmax[2])) > length:
+            break
+        if n < out.shape[0]:
+            out[n, 0] = cur[0]
+            out[n, 1] = cur[1]
+            out[n, 2] = cur[2]
+        n += 1
+        if n > 200000:  # liboctomap asserts at 100000 keys; never loop forever
+            break
+    return n
+
+
+# --------------------------------------------------------------------------- per-scan key sets
+# Free/occupied cells of a scan are marked in 8^3-cell bricks (a brick = a depth-13 node),
+# found through an open-addressing hash on the brick's Morton code. Marking deduplicates for
+# free, and the bricks are emitted in Morton order, so the tree update gets sorted codes.
+
+_BRICK = 8
+_EMPTY = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@njit(cache=True, inline="always")
+def _hash(c, mask):
+    h = c * np.uint64(0x9E3779B97F4A7C15)
+    return np.int64((h >> np.uint64(20)) & np.uint64(mask))
+
+
+@njit(cache=True)
+def _brick_find(tab_keys, tab_vals, bcode, mask):
+    h = _hash(bcode, mask)
+    while True:
+        k = tab_keys[h]
+        if k == bcode:
+            return tab_vals[h], h
+        if k == _EMPTY:
+            return -1, h
+        h = (h + 1) & mask
+
+
+@njit(cache=True)
+def scan_key_sets(points, origin, res, max_range, discretize):
+    """Free and occupied keys of one scan (computeUpdate), as sorted Morton codes.
+
+    Returns (codes uint64 sorted, is_hit bool, n_nonfinite, n_out_of_bounds, n_rays_failed).
+    """
+    rf = 1.0 / res
+    n = points.shape[0]
+    ox = np.float32(origin[0])
+    oy = np.float32(origin[1])
+    oz = np.float32(origin[2])
+    ok0 = np.empty(3, np.int64)
+    ok0[0] = _key_checked(ox, rf)
+    ok0[1] = _key_checked(oy, rf)
+    ok0[2] = _key_checked(oz, rf)
+    n_nonfinite = 0
+    n_oob = 0
+    n_failed = 0
+
+    # discretize: unique voxel centres of the endpoints (first-seen order does not matter:
+    # the result is a set of keys)
+    pts = points
+    if discretize:
+        valid = np.zeros(n, np.bool_)
+        codes = np.empty(n, np.uint64)
+        m = 0
+        for i in range(n):
+            x = points[i, 0]
+            y = points[i, 1]
+            z = points[i, 2]
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                n_nonfinite += 1
+                continue
+            kx = _key_checked(x, rf)
+            ky = _key_checked(y, rf)
+            kz = _key_checked(z, rf)
+            if kx < 0 or ky < 0 or kz < 0:
+                n_oob += 1
+                continue
+            codes[m] = morton(kx, ky, kz)
+            m += 1
+        u = np.unique(codes[:m])
+        ks = codes_to_keys(u)
+        pts = np.empty((u.shape[0], 3), np.float32)
+        for i in range(u.shape[0]):
+            for a in range(3):
+                pts[i, a] = np.float32(_key_to_coord(ks[i, a], res))
+        n = pts.shape[0]
+
+    cap = 1 << 12
+    mask = cap - 1
+    tab_keys = np.full(cap, _EMPTY, np.uint64)
+    tab_vals = np.empty(cap, np.int64)
+    nb = 0
+    pool_cap = 1024
+    pool = np.zeros(pool_cap * 512, np.uint8)
+    bcodes = np.empty(pool_cap, np.uint64)
+
+    cur = np.empty(3, np.int64)
+    k1 = np.empty(3, np.int64)
+    for i in range(n):
+        px = np.float32(pts[i, 0])
+        py = np.float32(pts[i, 1])
+        pz = np.float32(pts[i, 2])
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            n_nonfinite += 1
+            continue
+        # endpoint of the free ray, and whether the end cell is a hit
+        ddx = np.float32(px - ox)
+        ddy = np.float32(py - oy)
+        ddz = np.float32(pz - oz)
+        nrm = math.sqrt(np.float64(np.float32(np.float32(ddx * ddx + ddy * ddy) + ddz * ddz)))
+        hit = True
+        ex = px
+        ey = py
+        ez = pz
+        if max_range >= 0.0 and not (nrm <= max_range):
+            hit = False
+            if nrm > 0:
+                fl = np.float32(nrm)
+                ndx = np.float32(ddx / fl)
+                ndy = np.float32(ddy / fl)
+                ndz = np.float32(ddz / fl)
+            else:
+                ndx = ddx
+                ndy = ddy
+                ndz = ddz
+            mr = np.float32(max_range)
+            ex = np.float32(ox + np.float32(ndx * mr))
+            ey = np.float32(oy + np.float32(ndy * mr))
+            ez = np.float32(oz + np.float32(ndz * mr))
+        k1[0] = _key_checked(ex, rf)
+        k1[1] = _key_checked(ey, rf)
+        k1[2] = _key_checked(ez, rf)
+        end_ok = k1[0] >= 0 and k1[1] >= 0 and k1[2] >= 0
+        if hit and not end_ok:
+            n_oob += 1
+        ray_ok = end_ok and ok0[0] >= 0 and ok0[1] >= 0 and ok0[2] >= 0
+        if not ray_ok:
+            n_failed += 1
+        ncells = 0
+        if ray_ok and not (ok0[0] == k1[0] and ok0[1] == k1[1] and ok0[2] == k1[2]):
+            length, step, tmax, tdelta = _ray_setup(ox, oy, oz, ex, ey, ez, ok0, res)
+            cur[0] = ok0[0]
+            cur[1] = ok0[1]
+            cur[2] = ok0[2]
+            last_b = _EMPTY
+            base = 0
+            while True:
+                # mark cur free (state 1) unless already marked
+                bc = morton(cur[0] >> 3, cur[1] >> 3, cur[2] >> 3)
+                if bc != last_b:
+                    idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
+                    if idx < 0:
+                        if nb == pool_cap:
+                            pool_cap *= 2
+                            npool = np.zeros(pool_cap * 512, np.uint8)
+                            npool[: nb * 512] = pool[: nb * 512]
+                            pool = npool
+                            nbc = np.empty(pool_cap, np.uint64)
+                            nbc[:nb] = bcodes[:nb]
+                            bcodes = nbc
+                        idx = nb
+                        bcodes[nb] = bc
+                        nb += 1
+                        tab_keys[h] = bc
+                        tab_vals[h] = idx
+                        if nb * 2 > cap:
+                            cap *= 4
+                            mask = cap - 1
+                            tab_keys = np.full(cap, _EMPTY, np.uint64)
+                            tab_vals = np.empty(cap, np.int64)
+                            for j in range(nb):
+                                hh = _hash(bcodes[j], mask)
+                                while tab_keys[hh] != _EMPTY:
+                                    hh = (hh + 1) & mask
+                                tab_keys[hh] = bcodes[j]
+                                tab_vals[hh] = j
+                    last_b = bc
+                    base = idx * 512
+                li = base + (cur[0] & 7) + ((cur[1] & 7) << 3) + ((cur[2] & 7) << 6)
+                if pool[li] == 0:
+                    pool[li] = 1
+                ncells += 1
+                if ncells > 200000:
+                    break
+                # advance (the first cell is the origin cell, already in the ray)
+                if tmax[0] < tmax[1]:
+                    dim = 0 if tmax[0] < tmax[2] else 2
+                else:
+                    dim = 1 if tmax[1] < tmax[2] else 2
+                cur[dim] = (cur[dim] + step[dim]) & 0xFFFF
+                tmax[dim] += tdelta[dim]
+                if cur[0] == k1[0] and cur[1] == k1[1] and cur[2] == k1[2]:
+                    break
+                if min(tmax[0], min(tmax[1], tmax[2])) > length:
+                    break
+        if hit and end_ok:
+            # occupied endpoint: mark state 2 (wins over free)
+            bc = morton(k1[0] >> 3, k1[1] >> 3, k1[2] >> 3)
+            idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
+            if idx < 0:
+                if nb == pool_cap:
+                    pool_cap *= 2
+                    npool = np.zeros(pool_cap * 512, np.uint8)
+                    npool[: nb * 512] = pool[: nb * 512]
+                    pool = npool
+                    nbc = np.empty(pool_cap, np.uint64)
+                    nbc[:nb] = bcodes[:nb]
+                    bcodes = nbc
+                idx = nb
+                bcodes[nb] = bc
+                nb += 1
+                tab_keys[h] = bc
+                tab_vals[h] = idx
+                if nb * 2 > cap:
+                    cap *= 4
+                    mask = cap - 1
+                    tab_keys = np.full(cap, _EMPTY, np.uint64)
+                    tab_vals = np.empty(cap, np.int64)
+                    for j in range(nb):
+                        hh = _hash(bcodes[j], mask)
+                        while tab_keys[hh] != _EMPTY:
+                            hh = (hh + 1) & mask
+                        tab_keys[hh] = bcodes[j]
+                        tab_vals[hh] = j
+            li = idx * 512 + (k1[0] & 7) + ((k1[1] & 7) << 3) + ((k1[2] & 7) << 6)
+            pool[li] = 2
+
+    # emit in Morton order: bricks sorted by code, cells by local Morton index
+    order = np.argsort(bcodes[:nb])
+    local = np.empty(512, np.int64)
+    for m in range(512):
+        c = np.uint64(m)
+        lx = _compact1by2(c)
+        ly = _compact1by2(c >> np.uint64(1))
+        lz = _compact1by2(c >> np.uint64(2))
+        local[m] = np.int64(lx) + (np.int64(ly) << 3) + (np.int64(lz) << 6)
+    total = 0
+    for j in range(nb * 512):
+        if pool[j] != 0:
+            total += 1
+    out = np.empty(total, np.uint64)
+    is_hit = np.empty(total, np.bool_)
+    t = 0
+    for oi in range(nb):
+        b = order[oi]
+        base = b * 512
+        hi = bcodes[b] << np.uint64(9)
+        for m in range(512):
+            s = pool[base + local[m]]
+            if s != 0:
+                out[t] = hi | np.uint64(m)
+                is_hit[t] = s == 2
+                t += 1
+    return out, is_hit, n_nonfinite, n_oob, n_failed
+
+
+# --------------------------------------------------------------------------- tree updates
+
+
+@njit(cache=True)
+def new_block_bound(codes):
+    """Upper bound of the child blocks a batch of sorted codes can create (distinct ancestors)."""
+    n = codes.shape[0]
+    if n == 0:
+        return 0
+    total = 16
+    for i in range(1, n):
+        x = codes[i] ^ codes[i - 1]
+        if x == 0:
+            continue
+        b = 63
+        while (x >> np.uint64(b)) == 0:
+            b -= 1
+        total += 1 + b // 3
+    return total
+
+
+@njit(cache=True, inline="always")
+def _alloc(first, free_blocks, state):
+    # state[0] = number of free blocks on the stack, state[1] = next never-used block
+    if state[0] > 0:
+        state[0] -= 1
+        return free_blocks[state[0]]
+    b = state[1]
+    state[1] += 1
+    return b
+
+
+@njit(cache=True, inline="always")
+def _finalize(n, val, first, cmask, free_blocks, state):
+    """pruneNode, else updateOccupancyChildren (max of existing children)."""
+    f = first[n]
+    if f < 0:
+        return
+    m = cmask[n]
+    if m == 0xFF:
+        v0 = val[f]
+        collapsible = True
+        for k in range(8):
+            if first[f + k] >= 0 or val[f + k] != v0:
+                collapsible = False
+                break
+        if collapsible:
+            val[n] = v0
+            first[n] = -1
+            cmask[n] = 0
+            free_blocks[state[0]] = f >> 3
+            state[0] += 1
+            return
+    mx = -FLT_MAX
+    for k in range(8):
+        if (m >> k) & 1:
+            v = val[f + k]
+            if v > mx:
+                mx = v
+    val[n] = mx
+
+
+@njit(cache=True)
+def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax, root_new, lazy):
+    """updateNode(key, upd[i], lazy) for sorted, unique codes; one pass, inner nodes once.
+
+    Equivalent to liboctomap's per-key updateNode: the early exit on a clamped leaf, the
+    expansion of pruned leaves (children copy the value), new nodes at 0.0, clamping, and on the
+    way up pruneNode / max-of-children, done here when a node leaves the DFS path (its subtree is
+    final for this batch by then). Returns the number of keys that changed something.
+    """
+    stk = np.zeros(17, np.int64)
+    dirty = np.zeros(17, np.bool_)
+    stk_len = 1
+    prev = np.uint64(0)
+    n_applied = 0
+    for i in range(codes.shape[0]):
+        code = codes[i]
+        u = upd[i]
+        if i > 0:
+            x = code ^ prev
+            if x == 0:
+                shared = 16
+            else:
+                b = 63
+                while (x >> np.uint64(b)) == 0:
+                    b -= 1
+                shared = 15 - b // 3
+            keep = min(shared, stk_len - 1)
+            for d in range(stk_len - 1, keep, -1):
+                if dirty[d]:
+                    if not lazy:
+                        _finalize(stk[d], val, first, cmask, free_blocks, state)
+                    dirty[d] = False
+            stk_len = keep + 1
+        prev = code
+        d = stk_len - 1
+        nd = stk[d]
+        # search phase
+        while d < 16:
+            if first[nd] < 0:
+                break
+            pos = np.int64((code >> np.uint64(3 * (15 - d))) & np.uint64(7))
+            if (cmask[nd] >> pos) & 1:
+                nd = first[nd] + pos
+                d += 1
+                stk[d] = nd
+            else:
+                break
+        stk_len = d + 1
+        is_leaf = first[nd] < 0 and not (d == 0 and root_new)
+        if d == 16 or is_leaf:
+            lv = val[nd]
+            if (u >= 0 and lv >= cmax) or (u <= 0 and lv <= cmin):
+                continue
+        created = d == 0 and root_new and first[0] < 0
+        while d < 16:
+            pos = np.int64((code >> np.uint64(3 * (15 - d))) & np.uint64(7))
+            f = first[nd]
+            if f < 0:
+                blk = _alloc(first, free_blocks, state)
+                f = blk * 8
+                first[nd] = f
+                if not created:
+                    pv = val[nd]
+                    for k in range(8):
+                        val[f + k] = pv
+                        first[f + k] = -1
+                        cmask[f + k] = 0
+                    cmask[nd] = 0xFF
+                else:
+                    cmask[nd] = np.uint8(1 << pos)
+                    val[f + pos] = 0.0
+                    first[f + pos] = -1
+                    cmask[f + pos] = 0
+            else:
+                cmask[nd] = cmask[nd] | np.uint8(1 << pos)
+                val[f + pos] = 0.0
+                first[f + pos] = -1
+                cmask[f + pos] = 0
+                created = True
+            nd = f + pos
+            d += 1
+            stk[d] = nd
+        stk_len = 17
+        lv = np.float32(val[nd] + u)
+        if lv < cmin:
+            lv = cmin
+        elif lv > cmax:
+            lv = cmax
+        val[nd] = lv
+        n_applied += 1
+        root_new = False
+        for dd in range(15, -1, -1):
+            if dirty[dd]:
+                break
+            dirty[dd] = True
+    for d in range(stk_len - 1, -1, -1):
+        if dirty[d]:
+            if not lazy:
+                _finalize(stk[d], val, first, cmask, free_blocks, state)
+            dirty[d] = False
+    return n_applied
+
+
+# --------------------------------------------------------------------------- traversal
+
+
+@njit(cache=True)
+def preorder(first, cmask, has_root):
+    """Pre-order DFS (children 0..7) of the tree: node index, depth, node-centre key.
+
+    This is liboctomap's tree/leaf iterator order and its .ot/.bt payload order.
+    """
+    if not has_root:
+        return np.empty(0, np.int64), np.empty(0, np.uint8), np.empty((0, 3), np.uint16)
+    cap = 1024
+    nodes = np.empty(cap, np.int64)
+    depths = np.empty(cap, np.uint8)
+    keys = np.empty((cap, 3), np.uint16)
+    st_n = np.empty(8 * 17 + 8, np.int64)
+    st_d = np.empty(8 * 17 + 8, np.int64)
+    st_k = np.empty((8 * 17 + 8, 3), np.int64)
+    sp = 0
+    st_n[0] = 0
+    st_d[0] = 0
+    st_k[0, 0] = 32768
+    st_k[0, 1] = 32768
+    st_k[0, 2] = 32768
+    sp = 1
+    t = 0
+    while sp > 0:
+        sp -= 1
+        n = st_n[sp]
+        d = st_d[sp]
+        if t == cap:
+            cap *= 2
+            nn = np.empty(cap, np.int64)
+            nn[:t] = nodes[:t]
+            nodes = nn
+            ndp = np.empty(cap, np.uint8)
+            ndp[:t] = depths[:t]
+            depths = ndp
+            nk = np.empty((cap, 3), np.uint16)
+            nk[:t] = keys[:t]
+            keys = nk
+        nodes[t] = n
+        depths[t] = d
+        for a in range(3):
+            keys[t, a] = st_k[sp, a]
+        kx = st_k[sp, 0]
+        ky = st_k[sp, 1]
+        kz = st_k[sp, 2]
+        t += 1
+        f = first[n]
+        if f >= 0:
+            m = cmask[n]
+            off = 32768 >> (d + 1)
+            for k in range(7, -1, -1):
+                if (m >> k) & 1:
+                    st_n[sp] = f + k
+                    st_d[sp] = d + 1
+                    if k & 1:
+                        st_k[sp, 0] = kx + off
+                    else:
+                        st_k[sp, 0] = kx - off - (0 if off else 1)
+                    if k & 2:
+                        st_k[sp, 1] = ky + off
+                    else:
+                        st_k[sp, 1] = ky - off - (0 if off else 1)
+                    if k & 4:
+                        st_k[sp, 2] = kz + off
+                    else:
+                        st_k[sp, 2] = kz - off - (0 if off else 1)
+                    sp += 1
+    return nodes[:t], depths[:t], keys[:t]
+
+
+@njit(cache=True)
+def count_nodes(first, cmask, has_root):
+    """(number of nodes, number of inner nodes) by DFS."""
+    if not has_root:
+        return 0, 0
+    st = np.empty(8 * 17 + 8, np.int64)
+    st[0] = 0
+    sp = 1
+    total = 0
+    inner = 0
+    while sp > 0:
+        sp -= 1
+        n = st[sp]
+        total += 1
+        f = first[n]
+        if f >= 0:
+            inner += 1
+            m = cmask[n]
+            for k in range(8):
+                if (m >> k) & 1:
+                    st[sp] = f + k
+                    sp += 1
+    return total, inner
+
+
+# --------------------------------------------------------------------------- whole-tree passes
+
+
+@njit(cache=True)
+def prune_sweeps(val, first, cmask, free_blocks, state):
+    """prune(): sweeps at depth 15 -> 1 (pruneNode on nodes at that depth), stop on a sweep
+    that prunes nothing (liboctomap's early stop). Returns the number of pruned nodes."""
+    total = 0
+    st_n = np.empty(8 * 17 + 8, np.int64)
+    st_d = np.empty(8 * 17 + 8, np.int64)
+    for max_depth in range(15, 0, -1):
+        num = 0
+        st_n[0] = 0
+        st_d[0] = 0
+        sp = 1
+        while sp > 0:
+            sp -= 1
+            n = st_n[sp]
+            d = st_d[sp]
+            if d < max_depth:
+                f = first[n]
+                if f >= 0:
+                    m = cmask[n]
+                    for k in range(8):
+                        if (m >> k) & 1:
+                            st_n[sp] = f + k
+                            st_d[sp] = d + 1
+                            sp += 1
+            else:
+                f = first[n]
+                if f >= 0 and cmask[n] == 0xFF:
+                    v0 = val[f]
+                    ok = True
+                    for k in range(8):
+                        if first[f + k] >= 0 or val[f + k] != v0:
+                            ok = False
+                            break
+                    if ok:
+                        val[n] = v0
+                        first[n] = -1
+                        cmask[n] = 0
+                        free_blocks[state[0]] = f >> 3
+                        state[0] += 1
+                        num += 1
+        total += num
+        if num == 0:
+            break
+    return total
+
+
+@njit(cache=True)
+def expand_all(val, first, cmask, free_blocks, state, cap_blocks):
+    """expand(): every leaf above depth 16 gets 8 children copying its value, recursively.
+
+    Returns False (and stops) when the block capacity would be exceeded."""
+    st_n = np.empty(8 * 17 + 8, np.int64)
+    st_d = np.empty(8 * 17 + 8, np.int64)
+    st_n[0] = 0
+    st_d[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        n = st_n[sp]
+        d = st_d[sp]
+        if d >= 16:
+            continue
+        f = first[n]
+        if f < 0:
+            if state[0] == 0 and state[1] >= cap_blocks:
+                return False
+            b = _alloc(first, free_blocks, state)
+            f = b * 8
+            for k in range(8):
+                val[f + k] = val[n]
+                first[f + k] = -1
+                cmask[f + k] = 0
+            first[n] = f
+            cmask[n] = 0xFF
+        m = cmask[n]
+        for k in range(8):
+            if (m >> k) & 1:
+                st_n[sp] = f + k
+                st_d[sp] = d + 1
+                sp += 1
+    return True
+
+
+@njit(cache=True)
+def expand_block_need(first, cmask, has_root):
+    """Blocks expand() would allocate (sum over leaves at depth d of (8^(16-d)-1)/7)."""
+    if not has_root:
+        return 0
+    st_n = np.empty(8 * 17 + 8, np.int64)
+    st_d = np.empty(8 * 17 + 8, np.int64)
+    st_n[0] = 0
+    st_d[0] = 0
+    sp = 1
+    need = 0
+    while sp > 0:
+        sp -= 1
+        n = st_n[sp]
+        d = st_d[sp]
+        f = first[n]
+        if f < 0:
+            if d < 16:
+                need += ((1 << (3 * (16 - d))) - 1) // 7
+            continue
+        m = cmask[n]
+        for k in range(8):
+            if (m >> k) & 1:
+                st_n[sp] = f + k
+                st_d[sp] = d + 1
+                sp += 1
+    return need
+
+
+@njit(cache=True)
+def update_inner(val, first, cmask, has_root):
+    """updateInnerOccupancy(): every inner node = max of its existing children (post-order)."""
+    if not has_root:
+        return
+    nodes, depths, keys = preorder(first, cmask, has_root)
+    for t in range(nodes.shape[0] - 1, -1, -1):
+        n = nodes[t]
+        f = first[n]
+        if f >= 0:
+            mx = -FLT_MAX
+            m = cmask[n]
+            for k in range(8):
+                if (m >> k) & 1:
+                    if val[f + k] > mx:
+                        mx = val[f + k]
+            val[n] = mx
+
+
+# --------------------------------------------------------------------------- queries
+
+
+@njit(cache=True)
+def search_codes(val, first, cmask, has_root, codes, max_depth):
+    """search(key, depth): node index of the node containing each key (-1 = unknown), its depth."""
+    n = codes.shape[0]
+    out = np.full(n, -1, np.int64)
+    dep = np.zeros(n, np.uint8)
+    if not has_root:
+        return out, dep
+    for i in range(n):
+        code = codes[i]
+        nd = 0
+        d = 0
+        found = True
+        while d < max_depth:
+            f = first[nd]
+            pos = np.int64((code >> np.uint64(3 * (15 - d))) & np.uint64(7))
+            if f >= 0 and (cmask[nd] >> pos) & 1:
+                nd = f + pos
+                d += 1
+            elif f < 0:
+                break
+            else:
+                found = False
+                break
+        if found:
+            out[i] = nd
+            dep[i] = d
+    return out, dep
+
+
+@njit(cache=True, inline="always")
+def _search_one(first, cmask, kx, ky, kz):
+    code = morton(kx, ky, kz)
+    nd = 0
+    for d in range(16):
+        f = first[nd]
+        if f < 0:
+            return nd
+        pos = np.int64((code >> np.uint64(3 * (15 - d))) & np.uint64(7))
+        if (cmask[nd] >> pos) & 1:
+            nd = f + pos
+        else:
+            return -1
+    return nd
+
+
+@njit(cache=True)
+def cast_rays(val, first, cmask, has_root, origins, directions, res, occ_thres,
+              ignore_unknown, max_range):
+    """castRay for N rays: (hit bool, status int8, end (N,3) float32).
+
+    status: 0 = ran (hit says whether an occupied cell was found), 1 = origin out of bounds,
+    2 = zero direction (end left as NaN, like liboctomap leaving ``end`` untouched).
+    """
+    n = origins.shape[0]
+    hit = np.zeros(n, np.bool_)
+    status = np.zeros(n, np.int8)
+    end = np.full((n, 3), np.nan, np.float32)
+    rf = 1.0 / res
+    cur = np.empty(3, np.int64)
+    step = np.zeros(3, np.int64)
+    tmax = np.empty(3, np.float64)
+    tdelta = np.empty(3, np.float64)
+    max_set = max_range > 0.0
+    mr2 = max_range * max_range
+    for i in range(n):
+        ox = np.float32(origins[i, 0])
+        oy = np.float32(origins[i, 1])
+        oz = np.float32(origins[i, 2])
+        o = (ox, oy, oz)
+        cur[0] = _key_checked(ox, rf)
+        cur[1] = _key_checked(oy, rf)
+        cur[2] = _key_checked(oz, rf)
+        if cur[0] < 0 or cur[1] < 0 or cur[2] < 0:
+            status[i] = 1
+            continue
+        nd = _search_one(first, cmask, cur[0], cur[1], cur[2]) if has_root else -1
+        if nd >= 0:
+            if val[nd] >= occ_thres:
+                for a in range(3):
+                    end[i, a] = np.float32(_key_to_coord(cur[a], res))
+                hit[i] = True
+                continue
+        elif not ignore_unknown:
+            for a in range(3):
+                end[i, a] = np.float32(_key_to_coord(cur[a], res))
+            continue
+        dx = np.float32(directions[i, 0])
+        dy = np.float32(directions[i, 1])
+        dz = np.float32(directions[i, 2])
+        ln = math.sqrt(np.float64(np.float32(np.float32(dx * dx + dy * dy) + dz * dz)))
+        if ln > 0:
+            fl = np.float32(ln)
+            dx = np.float32(dx / fl)
+            dy = np.float32(dy / fl)
+            dz = np.float32(dz / fl)
+        dd = (dx, dy, dz)
+        for a in range(3):
+            di = dd[a]
+            step[a] = 1 if di > 0 else (-1 if di < 0 else 0)
+            if step[a] != 0:
+                border = _key_to_coord(cur[a], res) + np.float64(step[a] * res * 0.5)
+                tmax[a] = (border - np.float64(o[a])) / np.float64(di)
+                tdelta[a] = res / np.float64(abs(di))
+            else:
+                tmax[a] = DBL_MAX
+                tdelta[a] = DBL_MAX
+        if step[0] == 0 and step[1] == 0 and step[2] == 0:
+            status[i] = 2
+            continue
+        while True:
+            if tmax[0] < tmax[1]:
+                dim = 0 if tmax[0] < tmax[2] else 2
+            else:
+                dim = 1 if tmax[1] < tmax[2] else 2
+            if (step[dim] < 0 and cur[dim] == 0) or (step[dim] > 0 and cur[dim] == 65535):
+                for a in range(3):
+                    end[i, a] = np.float32(_key_to_coord(cur[a], res))
+                break
+            cur[dim] += step[dim]
+            tmax[dim] += tdelta[dim]
+            ex = np.float32(_key_to_coord(cur[0], res))
+            ey = np.float32(_key_to_coord(cur[1], res))
+            ez = np.float32(_key_to_coord(cur[2], res))
+            end[i, 0] = ex
+            end[i, 1] = ey
+            end[i, 2] = ez
+            if max_set:
+                a0 = np.float32(ex - ox)
+                a1 = np.float32(ey - oy)
+                a2 = np.float32(ez - oz)
+                dsq = 0.0
+                dsq += np.float64(np.float32(a0 * a0))
+                dsq += np.float64(np.float32(a1 * a1))
+                dsq += np.float64(np.float32(a2 * a2))
+                if dsq > mr2:
+                    break
+            nd = _search_one(first, cmask, cur[0], cur[1], cur[2]) if has_root else -1
+            if nd >= 0:
+                if val[nd] >= occ_thres:
+                    hit[i] = True
+                    break
+            elif not ignore_unknown:
+                break
+    return hit, status, end
+
+
+# --------------------------------------------------------------------------- file payloads
+
+
+@njit(cache=True)
+def bt_encode(val, first, cmask, nodes, occ_thres):
+    """.bt payload: 2 bytes per inner node in pre-order (1 = free leaf, 2 = occupied, 3 = inner)."""
+    n_inner = 0
+    for t in range(nodes.shape[0]):
+        if first[nodes[t]] >= 0:
+            n_inner += 1
+    if nodes.shape[0] == 1:
+        return np.zeros(2, np.uint8)
+    out = np.zeros(2 * n_inner, np.uint8)
+    j = 0
+    for t in range(nodes.shape[0]):
+        n = nodes[t]
+        f = first[n]
+        if f < 0:
+            continue
+        m = cmask[n]
+        b0 = 0
+        b1 = 0
+        for k in range(8):
+            if (m >> k) & 1:
+                c = f + k
+                if first[c] >= 0:
+                    code = 3
+                elif val[c] >= occ_thres:
+                    code = 2
+                else:
+                    code = 1
+                if k < 4:
+                    b0 |= code << (2 * k)
+                else:
+                    b1 |= code << (2 * (k - 4))
+        out[j] = b0
+        out[j + 1] = b1
+        j += 2
+    return out
+
+
+@njit(cache=True)
+def bt_decode(data, start, cmin, cmax):
+    """Parse a .bt payload from ``data[start:]``.
+
+    Returns (val, first, cmask, n_blocks, end_offset, error_offset); error_offset >= 0 means the
+    payload is truncated or inconsistent at that byte.
+    """
+    avail = data.shape[0] - start
+    max_inner = avail // 2
+    cap_blocks = max_inner + 1
+    val = np.empty(cap_blocks * 8, np.float32)
+    first = np.full(cap_blocks * 8, -1, np.int64)
+    cmask = np.zeros(cap_blocks * 8, np.uint8)
+    val[0] = cmax
+    nb = 1
+    pos = start
+    st = np.empty(8 * 17 + 8, np.int64)
+    st_d = np.empty(8 * 17 + 8, np.int64)
+    st[0] = 0
+    st_d[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        n = st[sp]
+        d = st_d[sp]
+        if pos + 2 > data.shape[0]:
+            return val, first, cmask, nb, pos, pos
+        b0 = data[pos]
+        b1 = data[pos + 1]
+        pos += 2
+        codes = np.empty(8, np.int64)
+        anyc = False
+        for k in range(8):
+            byte = b0 if k < 4 else b1
+            codes[k] = (byte >> (2 * (k & 3))) & 3
+            if codes[k] != 0:
+                anyc = True
+        if not anyc:
+            continue
+        if d >= 16:
+            return val, first, cmask, nb, pos, pos - 2
+        if nb >= cap_blocks:
+            return val, first, cmask, nb, pos, pos - 2
+        f = nb * 8
+        nb += 1
+        first[n] = f
+        m = 0
+        for k in range(8):
+            c = codes[k]
+            if c != 0:
+                m |= 1 << k
+                first[f + k] = -1
+                cmask[f + k] = 0
+                if c == 1:
+                    val[f + k] = cmin
+                elif c == 2:
+                    val[f + k] = cmax
+                else:
+                    val[f + k] = cmax
+        cmask[n] = m
+        for k in range(7, -1, -1):
+            if codes[k] == 3:
+                st[sp] = f + k
+                st_d[sp] = d + 1
+                sp += 1
+    return val, first, cmask, nb, pos, -1
+
+
+@njit(cache=True)
+def ot_decode(data, start, node_bytes):
+    """Parse an .ot payload (pre-order: value bytes, child mask byte).
+
+    Returns (payload (M, node_bytes-1) uint8 per slot, first, cmask, n_blocks, end, error_offset).
+    """
+    avail = data.shape[0] - start
+    max_nodes = avail // node_bytes
+    cap_blocks = max_nodes + 2
+    vb = node_bytes - 1
+    payload = np.zeros((cap_blocks * 8, vb), np.uint8)
+    first = np.full(payload.shape[0], -1, np.int64)
+    cmask = np.zeros(payload.shape[0], np.uint8)
+    nb = 1
+    pos = start
+    st = np.empty(8 * 17 + 8, np.int64)
+    st_d = np.empty(8 * 17 + 8, np.int64)
+    st[0] = 0
+    st_d[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        n = st[sp]
+        d = st_d[sp]
+        if pos + node_bytes > data.shape[0]:
+            return payload, first, cmask, nb, pos, pos
+        for b in range(vb):
+            payload[n, b] = data[pos + b]
+        m = data[pos + vb]
+        pos += node_bytes
+        if m == 0:
+            continue
+        if d >= 16:
+            return payload, first, cmask, nb, pos, pos - 1
+        if (nb + 1) * 8 > payload.shape[0]:
+            return payload, first, cmask, nb, pos, pos - 1
+        f = nb * 8
+        nb += 1
+        first[n] = f
+        cmask[n] = m
+        for k in range(7, -1, -1):
+            if (m >> k) & 1:
+                st[sp] = f + k
+                st_d[sp] = d + 1
+                sp += 1
+    return payload, first, cmask, nb, pos, -1
