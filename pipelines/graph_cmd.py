@@ -68,7 +68,7 @@ def run_optimize(args) -> int:
     if not graph.factors:
         print("octofactor: note: the graph has no factors; nothing to optimise", file=sys.stderr)
     result = graph.optimize(method=args.method, max_iterations=args.max_iterations)
-    print(f"initial error: {result.initial_error:.6g}")
-    print(f"final error:   {result.final_error:.6g} ({result.iterations} iterations, {result.method})")
+    print(f"initial error: {result.initial_error:.10g}")
+    print(f"final error:   {result.final_error:.10g} ({result.iterations} iterations, {result.method})")
     _report_dropped(write_pose_graph(args.output, graph), args.output)
     return 0

@@ -77,7 +77,7 @@ class RegistrationConfig:
     covariance: str = "sandwich"
     degeneracy_ratio: float = 1e-3
     cluster_size: float | None = None
-    cluster_factor: float = 4.0
+    cluster_factor: float = 2.0
 
     def __post_init__(self):
         if self.max_correspondence_distance <= 0:
