@@ -13,6 +13,12 @@ Cite Denis, Elder, Estrada (ECCV 2008) for the data.
 """
 from __future__ import annotations
 
+import os
+
+# single-threaded measurement: numpy's BLAS threads must be limited before numpy is imported
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
 import argparse
 import csv
 import sys
@@ -114,6 +120,28 @@ def nees_forward(results, truths) -> np.ndarray:
     return np.array(values)
 
 
+def _patch_peer_for_opencv5() -> None:
+    """lu-vp-detect 1.0.4 indexes LSD output as (N, 1, 4); OpenCV 5 returns (N, 4)."""
+    import cv2
+    import lu_vp_detect.vp_detection as peer_module
+
+    class _Detector:
+        def __init__(self, *args):
+            self._lsd = cv2.createLineSegmentDetector(*args)
+
+        def detect(self, image):
+            found = self._lsd.detect(image)
+            return (found[0].reshape(-1, 1, 4),) + tuple(found[1:])
+
+    class _Cv2:
+        createLineSegmentDetector = _Detector
+
+        def __getattr__(self, name):
+            return getattr(cv2, name)
+
+    peer_module.cv2 = _Cv2()
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "yud_train")
@@ -141,16 +169,20 @@ def main(argv=None) -> int:
         try:
             from lu_vp_detect import VPDetection  # optional peer, not a project dependency
 
+            _patch_peer_for_opencv5()
+
             def peer(image, truth):
                 det = VPDetection(length_thresh=30, principal_point=(YUD_K[0, 2], YUD_K[1, 2]),
                                   focal_length=YUD_K[0, 0], seed=0)
-                # lu-vp-detect returns directions with y up: flip to y down
-                vps = det.find_vps(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
-                return [v * np.array([1.0, -1.0, 1.0]) for v in np.asarray(vps)], None
+                det.find_vps(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+                # directions from its pixel VPs, so no assumption on its 3D axis convention
+                pixels = np.column_stack([det.vps_2D, np.ones(len(det.vps_2D))])
+                return list(pixels @ np.linalg.inv(YUD_K).T), None
 
             detectors.append(("lu-vp-detect (peer)", peer))
         except ImportError:
-            print("lu-vp-detect not importable: peer skipped", file=sys.stderr)
+            print("lu-vp-detect not importable: peer skipped (pip install --no-deps "
+                  "lu-vp-detect into the venv to compare)", file=sys.stderr)
 
     print(f"{len(truths)} images from {args.data}, single thread, {args.repeats} repeats")
     rows = {}

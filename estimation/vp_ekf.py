@@ -273,7 +273,8 @@ class VanishingPointEKF(ExtendedKalmanFilter):
     Parameters
     ----------
     K : (3, 3) camera intrinsics
-    T_world_camera : gtsam.Pose3 or (4, 4), the initial camera pose (identity if None)
+    T_world_camera : gtsam.Pose3 or (4, 4), the initial camera pose; None puts the BODY
+        frame at the identity (camera looking along world x, image up = world z)
     cov_pose : (6, 6) initial pose covariance, GTSAM tangent [rot, trans] of the camera
     config : VpEkfConfig
 
@@ -294,7 +295,11 @@ class VanishingPointEKF(ExtendedKalmanFilter):
         self.config = config
         self.K_cam = np.asarray(K, dtype=float).reshape(3, 3)
         if T_world_camera is None:
+            # The paper's convention: the body frame at the world origin (world x forward,
+            # z up), i.e. the camera looks along world x. (An identity CAMERA pose would put
+            # the body's pitch at -90 deg, the gimbal lock of the Euler state.)
             M = np.eye(4)
+            M[:3, :3] = R_BODY_CAMERA
         else:
             M = T_world_camera.matrix() if hasattr(T_world_camera, "matrix") else np.asarray(
                 T_world_camera, dtype=float)

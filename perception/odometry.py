@@ -20,7 +20,7 @@ corridor (the photometric term has little to hold on to): pass the previous incr
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np

@@ -382,6 +382,13 @@ def _residual_scale(seg: _Segments, idx: np.ndarray, d: np.ndarray) -> np.ndarra
     return np.sqrt(g1 ** 2 + g2 ** 2) / seg.cross_norm[idx]
 
 
+def _variance(chi2: float, dof: int) -> float:
+    """Return the residual variance, inflated by dof / (dof - 2): with the noise estimated from
+    the same residuals the normalised error follows a Student-t, whose variance is larger."""
+    dof = max(dof, 1)
+    return chi2 / dof * dof / max(dof - 2, 1)
+
+
 def _skew(v: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
@@ -411,8 +418,6 @@ def _fit_rotation(seg: _Segments, R: np.ndarray, label: np.ndarray, inlier: np.n
     idx = np.flatnonzero(inlier)
     k = label[idx]
     n = seg.normal[idx]
-    H = np.zeros((3, 3))
-    chi2 = 0.0
     for _ in range(iterations):
         d = R.T[k]  # (N, 3) direction of each inlier's VP
         s = _residual_scale(seg, idx, d)
@@ -429,9 +434,7 @@ def _fit_rotation(seg: _Segments, R: np.ndarray, label: np.ndarray, inlier: np.n
     r = np.sum(n * d, axis=1) / s
     J = _cross(d, n) / s[:, None]
     H = J.T @ J
-    chi2 = float(r @ r)
-    sigma2 = chi2 / max(len(idx) - 3, 1)
-    return R, H, sigma2
+    return R, H, _variance(float(r @ r), len(idx) - 3)
 
 
 def _fit_direction(seg: _Segments, d: np.ndarray, idx: np.ndarray, iterations: int = 3):
@@ -445,7 +448,7 @@ def _fit_direction(seg: _Segments, d: np.ndarray, idx: np.ndarray, iterations: i
         d = d_new if d_new @ d >= 0 else -d_new
     s = _residual_scale(seg, idx, d)
     r = (n @ d) / s
-    sigma2 = float(r @ r) / max(len(idx) - 2, 1)
+    sigma2 = _variance(float(r @ r), len(idx) - 2)
     # tangent-plane information B^T M B, B an orthonormal basis of d's orthogonal complement
     B = np.linalg.svd(d[None, :])[2][1:].T
     M = (n / s[:, None] ** 2).T @ n

@@ -77,7 +77,7 @@ class RegistrationConfig:
     covariance: str = "sandwich"
     degeneracy_ratio: float = 1e-3
     cluster_size: float | None = None
-    cluster_factor: float = 2.0
+    cluster_factor: float = 1.5
 
     def __post_init__(self):
         if self.max_correspondence_distance <= 0:
@@ -261,6 +261,17 @@ class Registration:
             return omega * cauchy_weight(omega * e, alpha)
         return omega * cauchy_weight(e, alpha)
 
+    def _curvature(self, e: np.ndarray, omega: np.ndarray) -> np.ndarray:
+        """Coefficient c_k of g_k g_k^T (g_k = J_k^T r_k) in the exact robust Hessian.
+
+        The IRLS matrix sum w_k J^T J drops the rho'' term; for the Cauchy kernel rho'' < 0, so
+        dropping it overstates the information exactly when residuals are large (high noise).
+        """
+        alpha = self.config.cauchy_alpha
+        if self.semantic and self.config.semantic_weight == "inside":
+            return -2.0 * omega ** 2 * cauchy_weight(omega * e, alpha) ** 2 / alpha ** 2
+        return -2.0 * omega * cauchy_weight(e, alpha) ** 2 / alpha ** 2
+
     def _cost(self, e: np.ndarray, omega: np.ndarray) -> float:
         alpha = self.config.cauchy_alpha
         if self.semantic and self.config.semantic_weight == "inside":
@@ -315,20 +326,23 @@ class Registration:
         src, tgt = self.source[corr.source_idx], self.target[corr.target_idx]
         Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
                        T[:3, :3])
-        e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
-        w = self._weights(e, corr.weights)
         terms = gicp_terms(T, src, tgt, Ut)
+        w = self._weights(terms.mahalanobis, corr.weights)
         Jflat = (terms.jacobians * np.sqrt(w)[:, None, None]).reshape(-1, 6)
         H = Jflat.T @ Jflat
-        # the per-correspondence scores w_k J_k^T r_k are summed per spatial block before the
-        # outer product (a cluster-robust sandwich): neighbouring residuals share target points
-        # and the neighbourhoods their covariances came from, so they are correlated; blocks a
-        # few neighbourhoods wide are close to independent
-        scores = w[:, None] * (np.swapaxes(terms.jacobians, 1, 2) @ terms.residuals[:, :, None])[:, :, 0]
-        clustered = cluster_sums(tgt, scores, self.cluster_size(T, corr))
+        g = (np.swapaxes(terms.jacobians, 1, 2) @ terms.residuals[:, :, None])[:, :, 0]
+        # M-estimator sandwich A^-1 B A^-1: A the exact Hessian of the robust cost (with the
+        # rho'' term), B the outer product of the scores w_k g_k summed per spatial block
+        # (cluster-robust: neighbouring residuals share target points and the neighbourhoods
+        # their covariances came from; blocks a few neighbourhoods wide are nearly independent)
+        c = self._curvature(terms.mahalanobis, corr.weights)
+        A = H + (g * c[:, None]).T @ g
+        if np.linalg.eigvalsh(A).min() <= 1e-9 * np.abs(np.linalg.eigvalsh(H)).max():
+            A = H  # too many residuals beyond the kernel's inflection: fall back to IRLS
+        clustered = cluster_sums(tgt, w[:, None] * g, self.cluster_size(T, corr))
         B = clustered.T @ clustered
         cov, unconstrained = covariance_from_information(
-            H, B if cfg.covariance == "sandwich" else None, self._scale(src),
+            A if cfg.covariance == "sandwich" else H, B if cfg.covariance == "sandwich" else None, self._scale(src),
             self._normal_information(T, src, tgt, corr, w), cfg.degeneracy_ratio)
         inliers = len(corr)
         if unconstrained:

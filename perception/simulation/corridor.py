@@ -112,7 +112,7 @@ class CorridorConfig:
     dropout: float = 0.01
     grazing_cos: float = 0.08
     rgb_noise: float = 1.0
-    texture: float = 0.08
+    texture: float = 0.05
     door_spacing: float = 4.0
     intrinsics: CameraIntrinsics = field(default=XTION_640)
 

@@ -1,0 +1,142 @@
+"""Plug-ins: discovery through entry points, validation, and one contract for every estimator.
+
+The example package in tests/plugins/ is pip-installed into a temporary folder (the venv is
+left untouched) and found through its ``octofactor.estimators`` entry point.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from estimation.covariance import check_consistency
+from estimation.plugins import (
+    PluginWarning,
+    available_estimators,
+    create_estimator,
+    validate,
+)
+
+EXAMPLE = Path(__file__).parent / "plugins" / "octofactor_example_filter"
+
+
+@pytest.fixture(scope="session")
+def example_plugin_path(tmp_path_factory) -> Path:
+    target = tmp_path_factory.mktemp("plugin_site")
+    result = subprocess.run(
+        [sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--target", str(target),
+         str(EXAMPLE)], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    sys.path.insert(0, str(target))
+    importlib.invalidate_caches()
+    yield target
+    sys.path.remove(str(target))
+    importlib.invalidate_caches()
+
+
+def _discover() -> tuple[dict, list[str]]:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PluginWarning)
+        found = available_estimators()
+    return found, [str(w.message) for w in caught if issubclass(w.category, PluginWarning)]
+
+
+def test_entry_point_plugin_is_discovered_and_broken_one_skipped(example_plugin_path):
+    found, messages = _discover()
+    assert "example_cv_filter" in found
+    assert found["example_cv_filter"].source == "octofactor-example-filter"
+    assert "example_broken" not in found
+    broken = [m for m in messages if "example_broken" in m]
+    assert broken and "missing" in broken[0] and "predict" in broken[0]
+
+
+def test_plugins_command_lists_the_plugin(example_plugin_path):
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(example_plugin_path),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    result = subprocess.run([sys.executable, "-m", "pipelines", "plugins"], capture_output=True,
+                            text=True, env=env, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert "example_cv_filter" in result.stdout
+    assert "example_broken" in result.stderr and "skipped" in result.stderr
+
+
+def test_validate_rejects_wrong_kinds():
+    class NoKind:
+        name = "x"
+
+    with pytest.raises(TypeError, match="kind"):
+        validate(NoKind())
+
+
+def test_unknown_estimator_is_a_clear_error():
+    from estimation.errors import OctofactorError
+
+    with pytest.raises(OctofactorError, match="unknown filter estimator 'nope'"):
+        create_estimator("nope", kind="filter")
+
+
+def _filter_names() -> list[str]:
+    names = ["example_cv_filter"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        names += [n for n, i in available_estimators("filter").items() if n not in names]
+    return names
+
+
+def _registration_names() -> list[str]:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return sorted(available_estimators("registration"))
+
+
+def _run_filter(estimator, scenario):
+    estimator.reset(scenario.x0, scenario.P0)
+    nees_values = []
+    for u, cov_u, z, R, truth in zip(scenario.controls, scenario.control_covs,
+                                     scenario.measurements, scenario.measurement_covs,
+                                     scenario.truths):
+        estimator.predict(u, cov_u)
+        if z is not None:
+            estimator.update(z, R)
+        error = estimator.error(truth)
+        nees_values.append(error @ np.linalg.solve(estimator.P, error))
+        # contract: P stays symmetric positive definite, x finite
+        assert np.all(np.isfinite(estimator.x))
+        np.testing.assert_allclose(estimator.P, estimator.P.T, atol=1e-9)
+        np.linalg.cholesky(estimator.P)
+    return np.array(nees_values)
+
+
+@pytest.mark.parametrize("name", _filter_names())
+def test_filter_contract_and_consistency(example_plugin_path, name):
+    estimator = create_estimator(name, kind="filter")
+    dim = len(estimator.simulate(np.random.default_rng(0), 5).x0)
+    runs = np.array([_run_filter(create_estimator(name, kind="filter"),
+                                 estimator.simulate(np.random.default_rng(seed), 30))
+                     for seed in range(50)])
+    check = check_consistency(runs, dof=dim, min_fraction=0.8)
+    assert check.passed, check
+
+
+@pytest.mark.parametrize("name", _registration_names())
+def test_registration_contract(name):
+    estimator = create_estimator(name, kind="registration")
+    scenario = estimator.simulate(np.random.default_rng(0))
+    result = estimator.register(scenario.source, scenario.target, scenario.T_init)
+    assert result.converged
+    T = np.asarray(result.T)
+    assert T.shape == (4, 4)
+    np.testing.assert_allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-9)
+    cov = np.asarray(result.covariance)
+    assert cov.shape == (6, 6)
+    np.linalg.cholesky(0.5 * (cov + cov.T))
+    import gtsam
+
+    error = gtsam.Pose3(T).localCoordinates(gtsam.Pose3(scenario.T_target_source))
+    assert np.linalg.norm(error) < 0.05
