@@ -309,18 +309,34 @@ def scan_key_sets(points, origin, res, max_range, discretize):
         ray_ok = end_ok and ok0[0] >= 0 and ok0[1] >= 0 and ok0[2] >= 0
         if not ray_ok:
             n_failed += 1
-        ncells = 0
         if ray_ok and not (ok0[0] == k1[0] and ok0[1] == k1[1] and ok0[2] == k1[2]):
             length, step, tmax, tdelta = _ray_setup(ox, oy, oz, ex, ey, ez, ok0, res)
-            cur[0] = ok0[0]
-            cur[1] = ok0[1]
-            cur[2] = ok0[2]
-            last_b = _EMPTY
+            kx = ok0[0]
+            ky = ok0[1]
+            kz = ok0[2]
+            ex_k = k1[0]
+            ey_k = k1[1]
+            ez_k = k1[2]
+            sx = step[0]
+            sy = step[1]
+            sz = step[2]
+            tx = tmax[0]
+            ty = tmax[1]
+            tz = tmax[2]
+            dtx = tdelta[0]
+            dty = tdelta[1]
+            dtz = tdelta[2]
+            lbx = -1
+            lby = -1
+            lbz = -1
             base = 0
+            ncells = 0
             while True:
-                # mark cur free (state 1) unless already marked
-                bc = morton(cur[0] >> 3, cur[1] >> 3, cur[2] >> 3)
-                if bc != last_b:
+                bx = kx >> 3
+                by = ky >> 3
+                bz = kz >> 3
+                if bx != lbx or by != lby or bz != lbz:
+                    bc = morton(bx, by, bz)
                     idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
                     if idx < 0:
                         if nb == pool_cap:
@@ -347,24 +363,34 @@ def scan_key_sets(points, origin, res, max_range, discretize):
                                     hh = (hh + 1) & mask
                                 tab_keys[hh] = bcodes[j]
                                 tab_vals[hh] = j
-                    last_b = bc
+                    lbx = bx
+                    lby = by
+                    lbz = bz
                     base = idx * 512
-                li = base + (cur[0] & 7) + ((cur[1] & 7) << 3) + ((cur[2] & 7) << 6)
+                li = base + (kx & 7) + ((ky & 7) << 3) + ((kz & 7) << 6)
                 if pool[li] == 0:
                     pool[li] = 1
                 ncells += 1
                 if ncells > 200000:
                     break
                 # advance (the first cell is the origin cell, already in the ray)
-                if tmax[0] < tmax[1]:
-                    dim = 0 if tmax[0] < tmax[2] else 2
+                if tx < ty:
+                    if tx < tz:
+                        kx = (kx + sx) & 0xFFFF
+                        tx += dtx
+                    else:
+                        kz = (kz + sz) & 0xFFFF
+                        tz += dtz
                 else:
-                    dim = 1 if tmax[1] < tmax[2] else 2
-                cur[dim] = (cur[dim] + step[dim]) & 0xFFFF
-                tmax[dim] += tdelta[dim]
-                if cur[0] == k1[0] and cur[1] == k1[1] and cur[2] == k1[2]:
+                    if ty < tz:
+                        ky = (ky + sy) & 0xFFFF
+                        ty += dty
+                    else:
+                        kz = (kz + sz) & 0xFFFF
+                        tz += dtz
+                if kx == ex_k and ky == ey_k and kz == ez_k:
                     break
-                if min(tmax[0], min(tmax[1], tmax[2])) > length:
+                if min(tx, min(ty, tz)) > length:
                     break
         if hit and end_ok:
             # occupied endpoint: mark state 2 (wins over free)

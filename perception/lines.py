@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 
-from perception.errors import ImageError
+from perception.errors import ImageError, PerceptionError
 
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
@@ -43,6 +43,11 @@ def to_gray_u8(image: np.ndarray) -> np.ndarray:
     """Return an (H, W) uint8 grayscale view/copy of a gray, BGR or BGRA image array.
 
     Float images with values in [0, 1] are scaled to [0, 255]; other dtypes are clipped.
+
+    Raises
+    ------
+    PerceptionError
+        When the array is not an image shape.
     """
     import cv2
 
@@ -53,9 +58,9 @@ def to_gray_u8(image: np.ndarray) -> np.ndarray:
         if image.shape[2] == 4:
             image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
         if image.shape[2] != 3:
-            raise ValueError(f"expected 1, 3 or 4 channels, got shape {image.shape}")
+            raise PerceptionError(f"expected 1, 3 or 4 channels, got image shape {image.shape}")
     elif image.ndim != 2:
-        raise ValueError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
+        raise PerceptionError(f"expected an (H, W) or (H, W, C) image, got shape {image.shape}")
     if image.dtype != np.uint8:
         values = image.astype(np.float64)
         if np.issubdtype(image.dtype, np.floating) and np.nanmax(values, initial=0.0) <= 1.0:

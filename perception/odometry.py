@@ -9,13 +9,17 @@ tangent space is the right perturbation T = T_hat exp(xi_r) with xi_r = Ad(T_hat
 the covariance is carried over with the adjoint of T_hat^-1.
 
 That information matrix counts every pixel as an independent unit-variance point, which is
-far too confident; :class:`OdometryConfig` scales it by ``cov_scale`` (and adds a small floor)
-calibrated on the simulated corridor so that the NEES against ground truth has mean ~6
-(benchmarks/corridor_sim.py measures it).
+badly shaped for a corridor (rotation and lateral motion look 15x worse than they are,
+forward motion better); :class:`OdometryConfig` scales it by ``cov_scale`` and adds a
+per-axis floor, both calibrated on the simulated corridor so that the NEES against ground
+truth is close to its chi-square mean of 6 (benchmarks/corridor_sim.py measures it).
 
-The odometry converges only from a guess within a few centimetres along a monotonous
-corridor (the photometric term has little to hold on to): pass the previous increment as
-``T_init`` (constant velocity) when frames are 0.3 s apart.
+Open3D's dense odometry converges only from a guess within a few centimetres along a
+monotonous corridor (with 0.24 m steps from identity it settles on ~zero forward motion and
+still reports success), so the guess comes from sparse features first: Shi-Tomasi corners
+of the previous image, pyramidal Lucas-Kanade tracks (forward-backward checked), their
+previous-frame depth and ``cv2.solvePnPRansac``. When that fails, the caller's ``T_init``
+(e.g. constant velocity) or the identity is used.
 """
 from __future__ import annotations
 
@@ -48,12 +52,22 @@ class OdometryConfig:
     max_translation, max_rotation_deg : float
         Larger increments are reported as failures (divergence), m and degrees.
     cov_scale : float
-        Multiplies inv(information) (calibrated on the simulated corridor).
-    cov_floor : tuple of float
-        Standard deviations (rad, m) added in quadrature to the diagonal
-        [rotation, translation], so that no direction is trusted below this.
+        Multiplies inv(information). Calibrated on the simulated corridor (seeds 1, 2):
+        Open3D's point-to-point information overstates the rotation and lateral
+        uncertainty ~15x and understates the forward one, so it is scaled down and ...
+    cov_floor : tuple of 6 float
+        ... standard deviations [rx, ry, rz (rad), tx, ty, tz (m)] in the current camera
+        frame are added in quadrature to the diagonal. The large tz (along the optical axis)
+        is the forward-motion error that photometric odometry makes in a monotonous corridor.
     failure_sigma : tuple of float
         Standard deviations (rad, m) of the covariance returned with a failure.
+    pnp_init : bool
+        Initialise from features + PnP (else from ``T_init``).
+    pnp_min_inliers : int
+        Fewer PnP inliers fall back to ``T_init``.
+    max_disagreement : tuple of float
+        (m, degrees): a dense result further than this from the PnP guess is a failure
+        (the dense refinement slid along the corridor).
     """
 
     iterations: tuple[int, ...] = (20, 10, 5)
@@ -64,9 +78,12 @@ class OdometryConfig:
     min_correspondences: int = 2000
     max_translation: float = 1.0
     max_rotation_deg: float = 30.0
-    cov_scale: float = 1.0
-    cov_floor: tuple[float, float] = (1e-4, 1e-3)
+    cov_scale: float = 0.003
+    cov_floor: tuple[float, ...] = (6e-5, 6e-5, 6e-5, 2e-4, 2e-4, 2.8e-3)
     failure_sigma: tuple[float, float] = (1.0, 10.0)
+    pnp_init: bool = True
+    pnp_min_inliers: int = 15
+    max_disagreement: tuple[float, float] = (0.05, 3.0)
 
 
 @dataclass(frozen=True)
@@ -87,6 +104,8 @@ class OdometryResult:
         Wall time of the call in milliseconds.
     correspondences : int
         Number of pixel correspondences at the finest level (0 on failure).
+    init : str
+        Where the dense odometry started: "pnp", "given" (T_init) or "identity".
     """
 
     T_prev_curr: gtsam.Pose3
@@ -95,13 +114,55 @@ class OdometryResult:
     reason: str
     ms: float
     correspondences: int = 0
+    init: str = "identity"
 
 
-def _failure(T_init: gtsam.Pose3, config: OdometryConfig, reason: str, start: float
-             ) -> OdometryResult:
+def _failure(T_init: gtsam.Pose3, config: OdometryConfig, reason: str, start: float,
+             init: str = "identity") -> OdometryResult:
     sigma_rot, sigma_trans = config.failure_sigma
     cov = np.diag([sigma_rot ** 2] * 3 + [sigma_trans ** 2] * 3)
-    return OdometryResult(T_init, cov, False, reason, (time.perf_counter() - start) * 1e3, 0)
+    return OdometryResult(T_init, cov, False, reason, (time.perf_counter() - start) * 1e3, 0,
+                          init)
+
+
+def pnp_guess(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
+              config: OdometryConfig = OdometryConfig()) -> tuple[gtsam.Pose3 | None, int]:
+    """Return (T_prev_curr or None, PnP inliers) from tracked corners and previous depth."""
+    import cv2
+
+    gray_prev = cv2.cvtColor(prev.rgb, cv2.COLOR_RGB2GRAY)
+    gray_curr = cv2.cvtColor(curr.rgb, cv2.COLOR_RGB2GRAY)
+    depth = prev.depth_m
+    mask = (np.isfinite(depth) & (depth > config.depth_min) & (depth < config.depth_max))
+    corners = cv2.goodFeaturesToTrack(gray_prev, 500, 0.01, 8, mask=mask.astype(np.uint8))
+    if corners is None or len(corners) < config.pnp_min_inliers:
+        return None, 0
+    lk = dict(winSize=(21, 21), maxLevel=4)
+    tracked, status, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_curr, corners, None, **lk)
+    back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray_curr, gray_prev, tracked, None, **lk)
+    good = ((status[:, 0] == 1) & (status_back[:, 0] == 1)
+            & (np.linalg.norm(back - corners, axis=2)[:, 0] < 1.0))
+    if np.count_nonzero(good) < config.pnp_min_inliers:
+        return None, 0
+    uv_prev = corners[good, 0].astype(np.float64)
+    uv_curr = tracked[good, 0].astype(np.float64)
+    cols = np.clip(np.rint(uv_prev[:, 0]).astype(int), 0, intr.width - 1)
+    rows = np.clip(np.rint(uv_prev[:, 1]).astype(int), 0, intr.height - 1)
+    z = depth[rows, cols].astype(np.float64)
+    keep = mask[rows, cols]
+    points_prev = np.stack([(uv_prev[:, 0] - intr.cx) * z / intr.fx,
+                            (uv_prev[:, 1] - intr.cy) * z / intr.fy, z], axis=1)[keep]
+    if points_prev.shape[0] < config.pnp_min_inliers:
+        return None, 0
+    ok, rvec, tvec, inliers = cv2.solvePnPRansac(points_prev, uv_curr[keep], intr.K, None,
+                                                 reprojectionError=2.0, iterationsCount=100)
+    n_inliers = 0 if inliers is None else len(inliers)
+    if not ok or n_inliers < config.pnp_min_inliers:
+        return None, n_inliers
+    rotation, _ = cv2.Rodrigues(rvec)
+    # solvePnP gives T_curr_prev (previous-frame points into the current camera)
+    T_curr_prev = gtsam.Pose3(gtsam.Rot3.ClosestTo(rotation), tvec.ravel())
+    return T_curr_prev.inverse(), n_inliers
 
 
 def _check_frame(frame: RgbdFrame, intr: CameraIntrinsics, which: str) -> None:
@@ -123,8 +184,7 @@ def information_to_covariance(info: np.ndarray, T_prev_curr: gtsam.Pose3,
     cov_left = config.cov_scale * np.linalg.inv(info)
     adjoint = T_prev_curr.inverse().AdjointMap()
     cov = adjoint @ cov_left @ adjoint.T
-    floor_rot, floor_trans = config.cov_floor
-    cov = cov + np.diag([floor_rot ** 2] * 3 + [floor_trans ** 2] * 3)
+    cov = cov + np.diag(np.square(np.asarray(config.cov_floor, dtype=float)))
     return 0.5 * (cov + cov.T)
 
 
@@ -151,6 +211,7 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
     import open3d as o3d
 
     start = time.perf_counter()
+    init = "identity" if T_init is None else "given"
     T_init = gtsam.Pose3() if T_init is None else T_init
     _check_frame(prev, intr, "previous")
     _check_frame(curr, intr, "current")
@@ -160,7 +221,12 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
                                  & (depth < config.depth_max))
         if valid < config.min_valid_fraction * depth.size:
             return _failure(T_init, config, f"too few valid depth pixels in the {which} frame "
-                                            f"({valid})", start)
+                                            f"({valid})", start, init)
+    T_pnp = None
+    if config.pnp_init:
+        T_pnp, _ = pnp_guess(prev, curr, intr, config)
+        if T_pnp is not None:
+            T_init, init = T_pnp, "pnp"
 
     def rgbd_image(frame: RgbdFrame):
         depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0).astype(np.float32)
@@ -180,21 +246,28 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
             rgbd_image(curr), rgbd_image(prev), pinhole, T_init.matrix(),
             o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), option)
     if not ok:
-        return _failure(T_init, config, "Open3D odometry did not converge", start)
+        return _failure(T_init, config, "Open3D odometry did not converge", start, init)
     correspondences = int(round(info[5, 5]))
     if correspondences < config.min_correspondences:
-        return _failure(T_init, config, f"too few correspondences ({correspondences})", start)
+        return _failure(T_init, config, f"too few correspondences ({correspondences})", start,
+                        init)
     if not (np.all(np.isfinite(T)) and np.all(np.isfinite(info))):
-        return _failure(T_init, config, "non-finite motion or information", start)
+        return _failure(T_init, config, "non-finite motion or information", start, init)
     # re-orthonormalise: Open3D accumulates small increments in double precision
     T_prev_curr = gtsam.Pose3(gtsam.Rot3.ClosestTo(T[:3, :3]), T[:3, 3])
     angle = np.degrees(np.linalg.norm(gtsam.Rot3.Logmap(T_prev_curr.rotation())))
     distance = float(np.linalg.norm(T_prev_curr.translation()))
     if distance > config.max_translation or angle > config.max_rotation_deg:
         return _failure(T_init, config, f"implausible motion ({distance:.2f} m, "
-                                        f"{angle:.1f} deg)", start)
+                                        f"{angle:.1f} deg)", start, init)
+    if T_pnp is not None:
+        delta = T_pnp.localCoordinates(T_prev_curr)
+        moved, turned = np.linalg.norm(delta[3:]), np.degrees(np.linalg.norm(delta[:3]))
+        if moved > config.max_disagreement[0] or turned > config.max_disagreement[1]:
+            return _failure(T_init, config, f"dense result {moved:.3f} m / {turned:.1f} deg "
+                                            "from the PnP guess", start, init)
     if np.linalg.cond(info) > 1e12:
-        return _failure(T_init, config, "singular information matrix", start)
+        return _failure(T_init, config, "singular information matrix", start, init)
     cov = information_to_covariance(info, T_prev_curr, config)
     return OdometryResult(T_prev_curr, cov, True, "", (time.perf_counter() - start) * 1e3,
-                          correspondences)
+                          correspondences, init)

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from perception.errors import PerceptionError
 from perception.lines import hough_segments, lsd_segments, to_gray_u8
 
 __all__ = [
@@ -182,7 +183,7 @@ def _nominal_K(shape: tuple[int, ...]) -> np.ndarray:
 def _check_K(K: np.ndarray) -> np.ndarray:
     K = np.asarray(K, dtype=np.float64)
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
-        raise ValueError(f"K must be a finite, invertible 3x3 camera matrix, got {K!r}")
+        raise PerceptionError(f"K must be a finite, invertible 3x3 camera matrix, got {K.tolist()}")
     return K
 
 
@@ -385,8 +386,7 @@ def _residual_scale(seg: _Segments, idx: np.ndarray, d: np.ndarray) -> np.ndarra
 def _variance(chi2: float, dof: int) -> float:
     """Return the residual variance, inflated by dof / (dof - 2): with the noise estimated from
     the same residuals the normalised error follows a Student-t, whose variance is larger."""
-    dof = max(dof, 1)
-    return chi2 / dof * dof / max(dof - 2, 1)
+    return chi2 / max(dof - 2, 1)  # (chi2 / dof) * dof / (dof - 2)
 
 
 def _skew(v: np.ndarray) -> np.ndarray:

@@ -8,6 +8,8 @@ import json
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from estimation.covariance import check_consistency, nees
 from perception.errors import ImageError, PerceptionError
@@ -260,3 +262,23 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert len(err) == 1 and "corrupt.jpg" in err[0]
     assert main(["vp", str(bad), "--intrinsics", "500,500,320"]) == 2
     assert "--intrinsics" in capsys.readouterr().err
+
+
+@settings(max_examples=25, deadline=None)
+@given(rotvec=st.tuples(*[st.floats(-0.6, 0.6)] * 3), seed=st.integers(0, 2 ** 16))
+def test_noise_free_segments_give_the_exact_rotation(rotvec, seed):
+    """Property: noise-free Manhattan segments of any (moderate) rotation give its axes back."""
+    R, _ = cv2.Rodrigues(np.array(rotvec))
+    segments = _manhattan_segments(np.random.default_rng(seed), R, K_SYN, n_per_axis=8)
+    result = manhattan_from_segments(segments, K_SYN)
+    assert len(result.vps) == 3
+    found = np.array([vp.direction for vp in result.vps])
+    errors = angle_between_directions(R.T[:, None, :], found[None, :, :]).min(axis=1)
+    assert np.all(errors < 1e-4), errors
+
+
+def test_bad_inputs_raise_perception_errors():
+    with pytest.raises(PerceptionError, match="K must be"):
+        detect_manhattan(np.zeros((48, 64), np.uint8), np.eye(3) * 0.0)
+    with pytest.raises(PerceptionError, match="shape"):
+        detect_seed(np.zeros((4, 4, 4, 4), np.uint8))

@@ -1,0 +1,287 @@
+"""Semantic point clouds: points with per-point class probabilities (the paper's "Semantic
+Point Cloud"), their PLY files, and how to make them from RGB-D frames or a semantic map.
+
+PLY layout (read and written through ``open3d.t``): ``x y z`` float32, optional
+``red green blue`` float32 in [0, 1], ``label`` int32 (argmax class) and ``prob_0 ..
+prob_{C-1}`` float32. Open3D's PLY writer rejects int64/uint32 attributes and its PCD
+writer drops multi-column attributes, hence one float32 column per class. A PLY with only
+``x y z label`` loads too (one-hot probabilities).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from estimation.errors import FormatError
+from estimation.fileio import atomic_write
+from perception.errors import PerceptionError
+
+Segmenter = Callable[[np.ndarray], np.ndarray]  # (H, W, 3) uint8 RGB -> (H, W, C) probabilities
+
+
+@dataclass(frozen=True)
+class SemanticCloud:
+    """A point cloud whose points carry class probabilities.
+
+    Attributes
+    ----------
+    points : (N, 3) float64 coordinates in the cloud's frame
+    probs : (N, C) float32 class probabilities (rows sum to 1)
+    colors : (N, 3) float32 RGB in [0, 1], or None
+    class_names : tuple of C names, or None
+    labels : (N,) int32 argmax class (derived)
+    """
+
+    points: np.ndarray
+    probs: np.ndarray
+    colors: np.ndarray | None = None
+    class_names: tuple[str, ...] | None = None
+    _cache: dict = field(default_factory=dict, compare=False, repr=False)
+
+    def __post_init__(self):
+        points = np.ascontiguousarray(np.asarray(self.points, dtype=np.float64).reshape(-1, 3))
+        probs = np.asarray(self.probs, dtype=np.float32)
+        if probs.ndim != 2 or len(probs) != len(points):
+            raise PerceptionError(
+                f"probs must be (N, C) with N={len(points)}, got shape {probs.shape}")
+        if probs.shape[1] < 1:
+            raise PerceptionError("a semantic cloud needs at least one class")
+        if not (np.all(np.isfinite(points)) and np.all(np.isfinite(probs))):
+            raise PerceptionError("semantic cloud has NaN or inf values")
+        if np.any(probs < 0):
+            raise PerceptionError("class probabilities must be non-negative")
+        sums = probs.sum(axis=1, keepdims=True)
+        if np.any(sums <= 0):
+            raise PerceptionError("a point has all-zero class probabilities")
+        probs = np.ascontiguousarray(probs / sums)
+        object.__setattr__(self, "points", points)
+        object.__setattr__(self, "probs", probs)
+        if self.colors is not None:
+            colors = np.asarray(self.colors, dtype=np.float32).reshape(-1, 3)
+            if len(colors) != len(points):
+                raise PerceptionError(f"{len(points)} points but {len(colors)} colours")
+            object.__setattr__(self, "colors", colors)
+        if self.class_names is not None:
+            names = tuple(str(n) for n in self.class_names)
+            if len(names) != probs.shape[1]:
+                raise PerceptionError(f"{probs.shape[1]} classes but {len(names)} class names")
+            object.__setattr__(self, "class_names", names)
+
+    def __len__(self) -> int:
+        return len(self.points)
+
+    @property
+    def n_classes(self) -> int:
+        return self.probs.shape[1]
+
+    @property
+    def labels(self) -> np.ndarray:
+        """(N,) int32 argmax class of every point."""
+        return self.probs.argmax(axis=1).astype(np.int32)
+
+    # -- construction -------------------------------------------------------------------------
+    @classmethod
+    def from_labels(cls, points: np.ndarray, labels: np.ndarray, n_classes: int | None = None,
+                    colors: np.ndarray | None = None,
+                    class_names: tuple[str, ...] | None = None) -> SemanticCloud:
+        """Return a cloud with one-hot probabilities from integer ``labels``."""
+        labels = np.asarray(labels).reshape(-1)
+        if len(labels) and labels.min() < 0:
+            raise PerceptionError("labels must be non-negative")
+        if n_classes is None:
+            n_classes = int(labels.max()) + 1 if len(labels) else 1
+        if len(labels) and labels.max() >= n_classes:
+            raise PerceptionError(f"label {int(labels.max())} >= n_classes {n_classes}")
+        probs = np.zeros((len(labels), n_classes), dtype=np.float32)
+        probs[np.arange(len(labels)), labels.astype(np.int64)] = 1.0
+        return cls(points, probs, colors, class_names)
+
+    @classmethod
+    def from_rgbd(cls, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
+                  segmenter: Segmenter | None = None, probs_image: np.ndarray | None = None,
+                  T_world_camera: np.ndarray | None = None, stride: int = 1,
+                  min_depth: float = 0.1, max_depth: float = 8.0,
+                  class_names: tuple[str, ...] | None = None) -> SemanticCloud:
+        """Return the semantic cloud of one RGB-D frame (camera frame unless a pose is given).
+
+        Either ``segmenter`` (a callable RGB image -> (H, W, C) probabilities: the pluggable
+        segmentation network, none ships) or a precomputed ``probs_image`` gives the classes.
+        Pixels with depth outside [min_depth, max_depth] are dropped.
+        """
+        rgb = np.asarray(rgb)
+        depth = np.asarray(depth_m, dtype=np.float64)
+        if depth.ndim != 2:
+            raise PerceptionError(f"depth must be (H, W), got {depth.shape}")
+        if probs_image is None:
+            if segmenter is None:
+                raise PerceptionError("give a segmenter or a probability image")
+            probs_image = segmenter(rgb)
+        probs_image = np.asarray(probs_image, dtype=np.float32)
+        if probs_image.ndim != 3 or probs_image.shape[:2] != depth.shape:
+            raise PerceptionError(
+                f"probability image must be (H, W, C) with (H, W)={depth.shape}, "
+                f"got {probs_image.shape}")
+        h, w = depth.shape
+        v, u = np.mgrid[0:h:stride, 0:w:stride]
+        z = depth[v, u]
+        ok = np.isfinite(z) & (z >= min_depth) & (z <= max_depth)
+        u, v, z = u[ok], v[ok], z[ok]
+        K = np.asarray(K, dtype=float)
+        points = np.c_[(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z]
+        if T_world_camera is not None:
+            T = np.asarray(T_world_camera, dtype=float)
+            points = points @ T[:3, :3].T + T[:3, 3]
+        colors = None
+        if rgb.ndim == 3 and rgb.shape[:2] == depth.shape:
+            colors = rgb[v, u, :3].astype(np.float32) / 255.0
+        return cls(points, probs_image[v, u], colors, class_names)
+
+    @classmethod
+    def from_semantic_octree(cls, tree, class_names: tuple[str, ...] | None = None
+                             ) -> SemanticCloud:
+        """Return the occupied voxel centres of a semantic octree with their class probabilities.
+
+        ``tree`` is a :class:`mapping.SemanticOcTree` (or anything with
+        ``occupied_voxels() -> (centres (M, 3), probs (M, C))``): the robot's "3D Semantic Map".
+        """
+        centres, probs = tree.occupied_voxels()
+        return cls(np.asarray(centres), np.asarray(probs), None, class_names)
+
+    @classmethod
+    def fuse_voxels(cls, points: np.ndarray, probs: np.ndarray, voxel_size: float,
+                    class_names: tuple[str, ...] | None = None) -> SemanticCloud:
+        """Return one point per voxel (the voxel's mean point) with averaged class probabilities.
+
+        The fall-back robot map when no semantic octree is used: averaging the per-view
+        probabilities is the maximum-likelihood fusion of independent categorical votes.
+        """
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        probs = np.asarray(probs, dtype=np.float64)
+        if len(points) == 0:
+            raise PerceptionError("no points to fuse")
+        keys = np.floor(points / voxel_size).astype(np.int64)
+        _, inverse, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+        inverse = inverse.reshape(-1)
+        m = len(counts)
+        sum_points = np.zeros((m, 3))
+        np.add.at(sum_points, inverse, points)
+        sum_probs = np.zeros((m, probs.shape[1]))
+        np.add.at(sum_probs, inverse, probs)
+        return cls(sum_points / counts[:, None], sum_probs / counts[:, None], None, class_names)
+
+    # -- operations ---------------------------------------------------------------------------
+    def transformed(self, T: np.ndarray) -> SemanticCloud:
+        """Return the cloud with points mapped by the 4x4 ``T`` (T_new_old)."""
+        T = np.asarray(T, dtype=float)
+        return SemanticCloud(self.points @ T[:3, :3].T + T[:3, 3], self.probs, self.colors,
+                             self.class_names)
+
+    def select(self, rows: np.ndarray) -> SemanticCloud:
+        """Return the sub-cloud of the given row indices or boolean mask."""
+        colors = None if self.colors is None else self.colors[rows]
+        return SemanticCloud(self.points[rows], self.probs[rows], colors, self.class_names)
+
+    def subsample(self, n: int, rng: np.random.Generator) -> SemanticCloud:
+        """Return ``n`` points drawn without replacement (all points when n >= N)."""
+        if n >= len(self):
+            return self
+        return self.select(np.sort(rng.choice(len(self), size=n, replace=False)))
+
+    def covariances(self, k: int = 20, epsilon: float = 1e-3) -> np.ndarray:
+        """Return the (N, 3, 3) GICP per-point covariances (computed once, then cached)."""
+        key = ("cov", int(k), float(epsilon))
+        if key not in self._cache:
+            from estimation.registration import point_covariances
+
+            self._cache[key] = point_covariances(self.points, k, epsilon)
+        return self._cache[key]
+
+    def to_scan(self):
+        """Return an :class:`estimation.Scan` (float32 points, labels, probs) for a PoseGraph."""
+        from estimation.pose_graph import Scan
+
+        return Scan(self.points.astype(np.float32), self.labels, self.probs)
+
+    # -- files --------------------------------------------------------------------------------
+    def write_ply(self, path: str | os.PathLike, ascii: bool = False) -> None:
+        """Write the cloud as PLY (x y z, colours, int32 label, float32 prob_i), atomically."""
+        import open3d as o3d
+
+        pcd = o3d.t.geometry.PointCloud()
+        pcd.point.positions = o3d.core.Tensor(self.points.astype(np.float32))
+        if self.colors is not None:
+            pcd.point.colors = o3d.core.Tensor(self.colors.astype(np.float32))
+        pcd.point.label = o3d.core.Tensor(self.labels.reshape(-1, 1))
+        for c in range(self.n_classes):
+            pcd.point[f"prob_{c}"] = o3d.core.Tensor(
+                np.ascontiguousarray(self.probs[:, c:c + 1]))
+        path = Path(path)
+        # Open3D writes by file name (and picks the format from the suffix): render to a
+        # private temporary .ply, then copy it through atomic_write
+        with tempfile.TemporaryDirectory(dir=path.parent if str(path.parent) else ".") as tmp:
+            tmp_path = os.path.join(tmp, "cloud.ply")
+            if not o3d.t.io.write_point_cloud(tmp_path, pcd, write_ascii=ascii):
+                raise PerceptionError(f"{path}: Open3D could not write the PLY")
+            with open(tmp_path, "rb") as src, atomic_write(path, "wb") as dst:
+                dst.write(src.read())
+        if self.class_names is not None:
+            with atomic_write(path.with_suffix(".classes.txt"), "w") as handle:
+                handle.write("\n".join(self.class_names) + "\n")
+
+    @classmethod
+    def read_ply(cls, path: str | os.PathLike, n_classes: int | None = None) -> SemanticCloud:
+        """Return the cloud stored in a PLY file (see the module docstring for the layout).
+
+        ``n_classes`` widens one-hot probabilities of a label-only file (default: max label
+        + 1). Raises :class:`FormatError` for files that are not semantic PLYs.
+        """
+        import open3d as o3d
+
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(2, "No such file", str(path))
+        if path.stat().st_size < 4 or path.read_bytes()[:3] != b"ply":
+            raise FormatError(path, "not a PLY file (no 'ply' magic)", offset=0)
+        pcd = o3d.t.io.read_point_cloud(str(path))
+        attrs = set(pcd.point)
+        if "positions" not in attrs or pcd.point.positions.shape[0] == 0:
+            raise FormatError(path, "PLY has no vertices with x, y, z")
+        points = pcd.point.positions.numpy().astype(np.float64)
+        colors = pcd.point.colors.numpy().astype(np.float32) if "colors" in attrs else None
+        prob_names = sorted((a for a in attrs if a.startswith("prob_")),
+                            key=lambda a: int(a[5:]) if a[5:].isdigit() else -1)
+        if prob_names:
+            expected = [f"prob_{c}" for c in range(len(prob_names))]
+            if prob_names != expected:
+                raise FormatError(path, f"probability columns {prob_names} are not "
+                                        f"prob_0..prob_{len(prob_names) - 1}")
+            probs = np.hstack([pcd.point[a].numpy().reshape(-1, 1) for a in prob_names])
+            if n_classes is not None and n_classes != probs.shape[1]:
+                raise FormatError(path, f"file has {probs.shape[1]} classes, expected "
+                                        f"{n_classes}")
+            if not np.all(np.isfinite(probs)) or np.any(probs < 0) or \
+                    np.any(probs.sum(axis=1) <= 0):
+                raise FormatError(path, "invalid class probabilities (negative, NaN or all zero)")
+        elif "label" in attrs:
+            labels = pcd.point.label.numpy().reshape(-1).astype(np.int64)
+            if labels.min() < 0:
+                raise FormatError(path, "negative label")
+            c = int(labels.max()) + 1 if n_classes is None else int(n_classes)
+            if labels.max() >= c:
+                raise FormatError(path, f"label {int(labels.max())} >= n_classes {c}")
+            probs = np.zeros((len(labels), c), dtype=np.float32)
+            probs[np.arange(len(labels)), labels] = 1.0
+        else:
+            raise FormatError(path, "PLY has neither a 'label' nor 'prob_i' properties")
+        names = None
+        names_path = path.with_suffix(".classes.txt")
+        if names_path.is_file():
+            lines = [ln.strip() for ln in names_path.read_text().splitlines() if ln.strip()]
+            if len(lines) == probs.shape[1]:
+                names = tuple(lines)
+        return cls(points, probs, colors, names)
