@@ -277,7 +277,8 @@ class PoseGraph:
         ``method="lm"`` runs Levenberg-Marquardt on the whole graph. ``method="isam2"``
         feeds the nodes and factors added since the previous iSAM2 call to an
         incremental :class:`gtsam.ISAM2` and updates it (call it after each new node for
-        online use); ``isam2_extra_steps`` adds relinearisation-only updates. Without any prior factor the first node is pinned (``GAUGE_SIGMA``).
+        online use); ``isam2_extra_steps`` adds relinearisation-only updates. Without
+        any prior factor the first node is pinned (``GAUGE_SIGMA``).
         """
         if not self.nodes:
             raise EstimationError("cannot optimise an empty pose graph")
@@ -334,7 +335,8 @@ class PoseGraph:
             try:
                 self._marginals = gtsam.Marginals(self._graph_for_solving(), self.values())
             except RuntimeError as exc:
-                raise EstimationError(f"marginals do not exist (graph is singular): {exc}") from None
+                raise EstimationError(
+                    f"marginals do not exist (graph is singular): {exc}") from None
         return self._marginals
 
     def marginal_covariance(self, node_id: int) -> np.ndarray:

@@ -36,8 +36,8 @@ def run_info(args) -> int:
     print(f"nodes:   {len(graph.nodes)}")
     kinds = ", ".join(f"{kind} {n}" for kind, n in sorted(counts.items())) or "none"
     print(f"factors: {len(graph.factors)} ({kinds})")
-    print(f"points:  {graph.num_points()} in {sum(n.scan is not None for n in graph.nodes.values())}"
-          " scans")
+    n_scans = sum(node.scan is not None for node in graph.nodes.values())
+    print(f"points:  {graph.num_points()} in {n_scans} scans")
     if len(stamps):
         first, last = float(stamps.min()), float(stamps.max())
         print(f"time:    {first!r} .. {last!r} ({last - first:.6f} s)")
@@ -69,6 +69,7 @@ def run_optimize(args) -> int:
         print("octofactor: note: the graph has no factors; nothing to optimise", file=sys.stderr)
     result = graph.optimize(method=args.method, max_iterations=args.max_iterations)
     print(f"initial error: {result.initial_error:.10g}")
-    print(f"final error:   {result.final_error:.10g} ({result.iterations} iterations, {result.method})")
+    print(f"final error:   {result.final_error:.10g} "
+          f"({result.iterations} iterations, {result.method})")
     _report_dropped(write_pose_graph(args.output, graph), args.output)
     return 0

@@ -80,7 +80,7 @@ def write_overlay(path: Path, gray, result) -> None:
     colour_of = np.full(len(result.segments), -1)
     for k, vp in enumerate(result.vps):
         colour_of[vp.inliers] = k
-    for seg, k in zip(np.round(result.segments).astype(int), colour_of):
+    for seg, k in zip(np.round(result.segments).astype(int), colour_of, strict=True):
         colour = _COLOURS[k % 3] if k >= 0 else _UNASSIGNED
         cv2.line(canvas, tuple(seg[:2]), tuple(seg[2:]), colour, 2 if k >= 0 else 1, cv2.LINE_AA)
     h, w = gray.shape[:2]

@@ -15,8 +15,13 @@ from estimation.covariance import check_consistency, nees
 from perception.errors import ImageError, PerceptionError
 from perception.lines import read_image
 from perception.vanishing_points import (
-    ManhattanConfig, SeedConfig, VPResult, angle_between_directions, detect_manhattan,
-    detect_seed, manhattan_from_segments,
+    ManhattanConfig,
+    SeedConfig,
+    VPResult,
+    angle_between_directions,
+    detect_manhattan,
+    detect_seed,
+    manhattan_from_segments,
 )
 from pipelines.cli import main
 
@@ -86,7 +91,8 @@ def _forward_error_and_nees(result: VPResult, gt_dirs: np.ndarray, K: np.ndarray
     vp = min(result.vps, key=lambda v: float(angle_between_directions(v.direction, gt)))
     p = K @ gt
     err = vp.uv - p[:2] / p[2]
-    return float(angle_between_directions(vp.direction, gt)), float(nees(err[None], vp.cov[None])[0])
+    error = float(angle_between_directions(vp.direction, gt))
+    return error, float(nees(err[None], vp.cov[None])[0])
 
 
 # ----------------------------------------------------------------------------- seed method
@@ -111,7 +117,8 @@ def test_seed_finds_rendered_vp_and_drops_axis_parallel_lines():
     assert np.linalg.norm(found.uv - vp) < 1.5
     # the axis-parallel lines were dropped: no kept segment is within the tolerance of an axis
     kept = result.segments[found.inliers]
-    folded = np.degrees(np.arctan2(np.abs(kept[:, 3] - kept[:, 1]), np.abs(kept[:, 2] - kept[:, 0])))
+    folded = np.degrees(np.arctan2(np.abs(kept[:, 3] - kept[:, 1]),
+                                   np.abs(kept[:, 2] - kept[:, 0])))
     assert np.all((folded > 10.0) & (folded < 80.0))
     # the covariance is an honest least-squares covariance: positive definite, pixel scale
     assert np.all(np.linalg.eigvalsh(found.cov) > 0)
@@ -148,7 +155,8 @@ def test_manhattan_recovers_rendered_rotation(seed):
     # forward = largest |dz|; results are deterministic (seeded RANSAC)
     assert result.forward() is max(result.vps, key=lambda v: abs(v.direction[2]))
     again = detect_manhattan(image, K_SYN)
-    for a, b in zip(result.vps, again.vps):
+    assert len(again.vps) == len(result.vps)
+    for a, b in zip(result.vps, again.vps, strict=True):
         np.testing.assert_array_equal(a.direction, b.direction)
         np.testing.assert_array_equal(a.inliers, b.inliers)
 
