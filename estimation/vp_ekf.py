@@ -24,8 +24,11 @@ filterpy's update, which already uses the Joseph form
 P = (I - KH) P (I - KH)^T + K R K^T (filterpy 2.0, ``ExtendedKalmanFilter.update``).
 
 Beyond the paper: ``vp_model="manhattan"`` observes up to three Manhattan VPs as unit
-directions in the camera, d_cam = R_camera_world w, with the world directions w fixed
-from the first frame that has detections.
+directions in the camera, d_cam = R_camera_world R_world_manhattan e_i. The last three
+state entries then hold the Manhattan frame's orientation instead of the VP point:
+R_world_manhattan = Exp(delta) R0, delta = x[6:9], R0 fixed by the first frame with two
+or more directions (so the frame is refined by every later detection, SLAM-style, instead
+of inheriting the first detection's error).
 """
 from __future__ import annotations
 
@@ -193,12 +196,46 @@ def direction_observation(x: np.ndarray, direction_world: np.ndarray) -> np.ndar
 
 
 def direction_jacobian(x: np.ndarray, direction_world: np.ndarray) -> np.ndarray:
-    """d(R_camera_world w)/dx (3, 9), analytic (only the Euler columns are non-zero)."""
+    """d(R_camera_world w)/dx (3, 9) for a fixed world direction w (Euler columns only)."""
     x = np.asarray(x, dtype=float).reshape(STATE_DIM)
     D = euler_matrix_derivatives(x[EULER])
     J = np.zeros((3, STATE_DIM))
     J[:, EULER] = R_BODY_CAMERA.T @ np.einsum("kji,j->ik", D, np.asarray(direction_world, float))
     return J
+
+
+def manhattan_rotation(x: np.ndarray, R_world_manhattan0: np.ndarray) -> np.ndarray:
+    """R_world_manhattan = Exp(delta) R0 with delta = x[6:9] (manhattan model)."""
+    import gtsam
+
+    delta = np.asarray(x, dtype=float).reshape(STATE_DIM)[VP]
+    return gtsam.Rot3.Expmap(delta).matrix() @ R_world_manhattan0
+
+
+def manhattan_observation(x: np.ndarray, R_world_manhattan0: np.ndarray, axis: int
+                          ) -> np.ndarray:
+    """Manhattan axis ``axis`` seen from the camera: R_camera_world Exp(delta) R0 e_axis, (3,)."""
+    return direction_observation(x, manhattan_rotation(x, R_world_manhattan0)[:, axis])
+
+
+def manhattan_jacobian(x: np.ndarray, R_world_manhattan0: np.ndarray, axis: int) -> np.ndarray:
+    """d manhattan_observation / dx (3, 9), analytic.
+
+    d(Exp(delta) v)/d delta = -Exp(delta) [v]x Jr(delta) (Jr: SO(3) right Jacobian).
+    """
+    import gtsam
+
+    x = np.asarray(x, dtype=float).reshape(STATE_DIM)
+    R_delta = gtsam.Rot3.Expmap(x[VP]).matrix()
+    v = R_world_manhattan0[:, axis]
+    w = R_delta @ v
+    J = direction_jacobian(x, w)
+    J[:, VP] = -camera_rotation(x).T @ R_delta @ _skew(v) @ gtsam.Rot3.ExpmapDerivative(x[VP])
+    return J
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def tangent_from_state_jacobian(x: np.ndarray) -> np.ndarray:
@@ -286,7 +323,8 @@ class VanishingPointEKF(ExtendedKalmanFilter):
     Q : the last process noise M of eq. (10)
     R : the last measurement noise (the paper's Q, eq. (14))
     K, y, S : gain, innovation and innovation covariance of the last update
-    world_directions : (k, 3) Manhattan directions in the world (manhattan model)
+    manhattan_R0 : (3, 3) R_world_manhattan at initialisation (manhattan model), else None;
+        x[6:9] then holds the rotation-vector correction delta of the Manhattan frame
     """
 
     def __init__(self, K: np.ndarray, T_world_camera=None, cov_pose: np.ndarray | None = None,
@@ -317,7 +355,7 @@ class VanishingPointEKF(ExtendedKalmanFilter):
         self.P = P
         self._finish_step()
         self.vp_initialised = False
-        self.world_directions = np.zeros((0, 3))
+        self.manhattan_R0: np.ndarray | None = None
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -389,50 +427,54 @@ class VanishingPointEKF(ExtendedKalmanFilter):
     def update_directions(self, directions: np.ndarray, uvs=None, covs=None) -> list[VpUpdate]:
         """Manhattan update from up to three unit directions in the camera, (k, 3).
 
+        The Manhattan frame's orientation in the world is part of the state: x[6:9] = delta
+        with R_world_manhattan = Exp(delta) R0. The first frame with at least two directions
+        fixes R0 (from the estimated camera rotation) and initialises delta = 0 with the
+        camera's rotation covariance (and its cross-covariances) plus the detection noise;
+        later directions are associated with the nearest axis and update the filter.
         ``uvs`` / ``covs`` (optional, per direction) give the pixel and its covariance, from
         which the direction noise is propagated; otherwise ``config.direction_sigma`` is used.
-        The first call fixes the world directions (R_world_camera d).
         """
         directions = np.asarray(directions, dtype=float).reshape(-1, 3)
         k = len(directions)
         uvs = [None] * k if uvs is None else list(uvs)
         covs = [None] * k if covs is None else list(covs)
-        outcomes: list[VpUpdate] = []
+        norms = np.linalg.norm(directions, axis=1)
+        good = np.isfinite(norms) & (norms > 1e-9)
+        outcomes = [VpUpdate("skipped", "bad_direction") for _ in range(k)]
+        if not good.any():
+            return outcomes
+        directions = np.where(good[:, None], directions / np.where(good, norms, 1.0)[:, None], 0)
+        if self.manhattan_R0 is None:
+            return self._initialise_manhattan(directions, good, uvs, covs, outcomes)
         used: set[int] = set()
         cos_assoc = np.cos(np.deg2rad(self.config.manhattan_association_deg))
-        for d_meas, uv, cov in zip(directions, uvs, covs):
-            norm = np.linalg.norm(d_meas)
-            if not np.isfinite(norm) or norm < 1e-9:
-                outcomes.append(VpUpdate("skipped", "bad_direction"))
-                continue
-            d_meas = d_meas / norm
+        for i in np.flatnonzero(good):
             x = self.x.reshape(-1)
-            R_wc = camera_rotation(x)
-            predicted = self.world_directions @ R_wc  # rows: R_cw w
-            cosines = predicted @ d_meas if len(predicted) else np.zeros(0)
+            R0 = self.manhattan_R0
+            predicted = (camera_rotation(x).T @ manhattan_rotation(x, R0)).T  # rows: axes in cam
+            cosines = predicted @ directions[i]
             order = np.argsort(-np.abs(cosines))
-            match = next((int(j) for j in order if int(j) not in used
-                          and abs(cosines[j]) >= cos_assoc), None)
-            if match is None:
-                if len(self.world_directions) < 3 and np.all(np.abs(
-                        (self.world_directions @ (R_wc @ d_meas))) < np.cos(np.deg2rad(80.0))):
-                    self.world_directions = np.vstack([self.world_directions, R_wc @ d_meas])
-                    used.add(len(self.world_directions) - 1)
-                    outcomes.append(VpUpdate("initialised"))
-                else:
-                    outcomes.append(VpUpdate("skipped", "no_association"))
+            axis = next((int(j) for j in order if int(j) not in used
+                         and abs(cosines[j]) >= cos_assoc), None)
+            if axis is None:
+                outcomes[i] = VpUpdate("skipped", "no_association")
                 continue
-            used.add(match)
-            w = self.world_directions[match]
-            d_pred = R_wc.T @ w
-            if d_pred @ d_meas < 0:  # a VP direction has no sign
-                d_meas = -d_meas
-            B = tangent_basis(d_pred)
-            Q = B.T @ self._direction_cov(d_meas, uv, cov) @ B
-            outcomes.append(self._gated_update(
-                B.T @ d_meas, lambda s, w=w, B=B: B.T @ direction_jacobian(s, w),
-                lambda s, w=w, B=B: B.T @ direction_observation(s, w), Q))
+            used.add(axis)
+            d_meas = directions[i] if cosines[axis] > 0 else -directions[i]  # VPs have no sign
+            B = tangent_basis(predicted[axis])
+            Q = B.T @ self._direction_cov(uvs[i], covs[i]) @ B
+            outcomes[i] = self._gated_update(
+                B.T @ d_meas, lambda s, a=axis, B=B: B.T @ manhattan_jacobian(s, R0, a),
+                lambda s, a=axis, B=B: B.T @ manhattan_observation(s, R0, a), Q)
         return outcomes
+
+    @property
+    def world_directions(self) -> np.ndarray:
+        """(3, 3) rows: the Manhattan axes in the world ((0, 3) before initialisation)."""
+        if self.manhattan_R0 is None:
+            return np.zeros((0, 3))
+        return manhattan_rotation(self.x, self.manhattan_R0).T
 
     # ------------------------------------------------------------------ internals
     def _gated_update(self, z: np.ndarray, HJacobian, Hx, Q: np.ndarray) -> VpUpdate:
@@ -470,6 +512,41 @@ class VanishingPointEKF(ExtendedKalmanFilter):
         self.vp_initialised = True
         self._finish_step()
 
+    def _initialise_manhattan(self, directions, good, uvs, covs, outcomes) -> list[VpUpdate]:
+        idx = np.flatnonzero(good)
+        if len(idx) < 2:
+            outcomes[idx[0]] = VpUpdate("skipped", "manhattan_needs_two_directions")
+            return outcomes
+        first = directions[idx[0]]
+        second = next((directions[j] for j in idx[1:]
+                       if abs(directions[j] @ first) < np.cos(np.deg2rad(60.0))), None)
+        if second is None:
+            outcomes[idx[0]] = VpUpdate("skipped", "manhattan_needs_two_directions")
+            return outcomes
+        # Nearest orthonormal frame to the two directions (camera coordinates).
+        second = second - (second @ first) * first
+        second /= np.linalg.norm(second)
+        M_camera = np.column_stack([first, second, np.cross(first, second)])
+        x = self.x.reshape(-1)
+        self.manhattan_R0 = camera_rotation(x) @ M_camera
+        # delta = 0 carries the camera's world-rotation error (E de) and the detection noise.
+        E = euler_rate_matrix(x[EULER])
+        noise = max(float(np.trace(self._direction_cov(uvs[j], covs[j]))) / 2 for j in idx)
+        P = self.P
+        P[VP, :] = 0.0
+        P[:, VP] = 0.0
+        P[VP, POSE] = E @ P[EULER, POSE]
+        P[POSE, VP] = P[VP, POSE].T
+        P[VP, VP] = E @ P[EULER, EULER] @ E.T + noise * np.eye(3)
+        self.P = P
+        x = x.copy()
+        x[VP] = 0.0
+        self.x = x.reshape(-1, 1)
+        self._finish_step()
+        for j in idx:
+            outcomes[j] = VpUpdate("initialised")
+        return outcomes
+
     def _measurement_cov(self, cov_uv) -> np.ndarray:
         Q = np.asarray(cov_uv, dtype=float).reshape(2, 2)
         Q = 0.5 * (Q + Q.T)
@@ -477,7 +554,7 @@ class VanishingPointEKF(ExtendedKalmanFilter):
             raise EstimationError("VP pixel covariance must be finite and positive definite")
         return Q
 
-    def _direction_cov(self, d_meas, uv, cov) -> np.ndarray:
+    def _direction_cov(self, uv, cov) -> np.ndarray:
         if uv is not None and cov is not None and np.all(np.isfinite(uv)):
             _, dn_duv = pixel_ray(np.asarray(uv, dtype=float), self.K_cam)
             Q = self._measurement_cov(cov)

@@ -194,7 +194,7 @@ _EMPTY = np.uint64(0xFFFFFFFFFFFFFFFF)
 @njit(cache=True, inline="always")
 def _hash(c, mask):
     h = c * np.uint64(0x9E3779B97F4A7C15)
-    return np.int64((h >> np.uint64(20)) & np.uint64(mask))
+    return np.int64((h >> np.uint64(29)) & np.uint64(mask))
 
 
 @njit(cache=True)
@@ -210,71 +210,27 @@ def _brick_find(tab_keys, tab_vals, bcode, mask):
 
 
 @njit(cache=True)
-def scan_key_sets(points, origin, res, max_range, discretize):
-    """Free and occupied keys of one scan (computeUpdate), as sorted Morton codes.
+def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, pool, bcodes,
+               counters):
+    """Mark the free cells (1) and hit cells (2) of rays i0.. into bricks.
 
-    Returns (codes uint64 sorted, is_hit bool, n_nonfinite, n_out_of_bounds, n_rays_failed).
+    counters = [n_bricks, n_nonfinite, n_out_of_bounds, n_failed]. Returns the index of the
+    ray that found no room for a new brick (the caller grows the arrays and calls again: marking
+    is idempotent, so re-walking that ray is harmless), or the number of points when done.
     """
     rf = 1.0 / res
-    n = points.shape[0]
-    ox = np.float32(origin[0])
-    oy = np.float32(origin[1])
-    oz = np.float32(origin[2])
-    ok0 = np.empty(3, np.int64)
-    ok0[0] = _key_checked(ox, rf)
-    ok0[1] = _key_checked(oy, rf)
-    ok0[2] = _key_checked(oz, rf)
-    n_nonfinite = 0
-    n_oob = 0
-    n_failed = 0
-
-    # discretize: unique voxel centres of the endpoints (first-seen order does not matter:
-    # the result is a set of keys)
-    pts = points
-    if discretize:
-        valid = np.zeros(n, np.bool_)
-        codes = np.empty(n, np.uint64)
-        m = 0
-        for i in range(n):
-            x = points[i, 0]
-            y = points[i, 1]
-            z = points[i, 2]
-            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-                n_nonfinite += 1
-                continue
-            kx = _key_checked(x, rf)
-            ky = _key_checked(y, rf)
-            kz = _key_checked(z, rf)
-            if kx < 0 or ky < 0 or kz < 0:
-                n_oob += 1
-                continue
-            codes[m] = morton(kx, ky, kz)
-            m += 1
-        u = np.unique(codes[:m])
-        ks = codes_to_keys(u)
-        pts = np.empty((u.shape[0], 3), np.float32)
-        for i in range(u.shape[0]):
-            for a in range(3):
-                pts[i, a] = np.float32(_key_to_coord(ks[i, a], res))
-        n = pts.shape[0]
-
-    cap = 1 << 12
+    n = pts.shape[0]
+    cap = tab_keys.shape[0]
     mask = cap - 1
-    tab_keys = np.full(cap, _EMPTY, np.uint64)
-    tab_vals = np.empty(cap, np.int64)
-    nb = 0
-    pool_cap = 1024
-    pool = np.zeros(pool_cap * 512, np.uint8)
-    bcodes = np.empty(pool_cap, np.uint64)
-
-    cur = np.empty(3, np.int64)
+    pool_cap = bcodes.shape[0]
+    nb = counters[0]
     k1 = np.empty(3, np.int64)
-    for i in range(n):
+    for i in range(i0, n):
         px = np.float32(pts[i, 0])
         py = np.float32(pts[i, 1])
         pz = np.float32(pts[i, 2])
         if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
-            n_nonfinite += 1
+            counters[1] += 1
             continue
         # endpoint of the free ray, and whether the end cell is a hit
         ddx = np.float32(px - ox)
@@ -304,11 +260,7 @@ def scan_key_sets(points, origin, res, max_range, discretize):
         k1[1] = _key_checked(ey, rf)
         k1[2] = _key_checked(ez, rf)
         end_ok = k1[0] >= 0 and k1[1] >= 0 and k1[2] >= 0
-        if hit and not end_ok:
-            n_oob += 1
         ray_ok = end_ok and ok0[0] >= 0 and ok0[1] >= 0 and ok0[2] >= 0
-        if not ray_ok:
-            n_failed += 1
         if ray_ok and not (ok0[0] == k1[0] and ok0[1] == k1[1] and ok0[2] == k1[2]):
             length, step, tmax, tdelta = _ray_setup(ox, oy, oz, ex, ey, ez, ok0, res)
             kx = ok0[0]
@@ -339,30 +291,14 @@ def scan_key_sets(points, origin, res, max_range, discretize):
                     bc = morton(bx, by, bz)
                     idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
                     if idx < 0:
-                        if nb == pool_cap:
-                            pool_cap *= 2
-                            npool = np.zeros(pool_cap * 512, np.uint8)
-                            npool[: nb * 512] = pool[: nb * 512]
-                            pool = npool
-                            nbc = np.empty(pool_cap, np.uint64)
-                            nbc[:nb] = bcodes[:nb]
-                            bcodes = nbc
+                        if nb >= pool_cap or (nb + 1) * 2 > cap:
+                            counters[0] = nb
+                            return i
                         idx = nb
                         bcodes[nb] = bc
                         nb += 1
                         tab_keys[h] = bc
                         tab_vals[h] = idx
-                        if nb * 2 > cap:
-                            cap *= 4
-                            mask = cap - 1
-                            tab_keys = np.full(cap, _EMPTY, np.uint64)
-                            tab_vals = np.empty(cap, np.int64)
-                            for j in range(nb):
-                                hh = _hash(bcodes[j], mask)
-                                while tab_keys[hh] != _EMPTY:
-                                    hh = (hh + 1) & mask
-                                tab_keys[hh] = bcodes[j]
-                                tab_vals[hh] = j
                     lbx = bx
                     lby = by
                     lbz = bz
@@ -393,36 +329,108 @@ def scan_key_sets(points, origin, res, max_range, discretize):
                 if min(tx, min(ty, tz)) > length:
                     break
         if hit and end_ok:
-            # occupied endpoint: mark state 2 (wins over free)
+            # occupied endpoint: state 2 wins over free
             bc = morton(k1[0] >> 3, k1[1] >> 3, k1[2] >> 3)
             idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
             if idx < 0:
-                if nb == pool_cap:
-                    pool_cap *= 2
-                    npool = np.zeros(pool_cap * 512, np.uint8)
-                    npool[: nb * 512] = pool[: nb * 512]
-                    pool = npool
-                    nbc = np.empty(pool_cap, np.uint64)
-                    nbc[:nb] = bcodes[:nb]
-                    bcodes = nbc
+                if nb >= pool_cap or (nb + 1) * 2 > cap:
+                    counters[0] = nb
+                    return i
                 idx = nb
                 bcodes[nb] = bc
                 nb += 1
                 tab_keys[h] = bc
                 tab_vals[h] = idx
-                if nb * 2 > cap:
-                    cap *= 4
-                    mask = cap - 1
-                    tab_keys = np.full(cap, _EMPTY, np.uint64)
-                    tab_vals = np.empty(cap, np.int64)
-                    for j in range(nb):
-                        hh = _hash(bcodes[j], mask)
-                        while tab_keys[hh] != _EMPTY:
-                            hh = (hh + 1) & mask
-                        tab_keys[hh] = bcodes[j]
-                        tab_vals[hh] = j
-            li = idx * 512 + (k1[0] & 7) + ((k1[1] & 7) << 3) + ((k1[2] & 7) << 6)
-            pool[li] = 2
+            pool[idx * 512 + (k1[0] & 7) + ((k1[1] & 7) << 3) + ((k1[2] & 7) << 6)] = 2
+        if hit and not end_ok:
+            counters[2] += 1
+        if not ray_ok:
+            counters[3] += 1
+    counters[0] = nb
+    return n
+
+
+@njit(cache=True)
+def scan_key_sets(points, origin, res, max_range, discretize):
+    """Free and occupied keys of one scan (computeUpdate), as sorted Morton codes.
+
+    Returns (codes uint64 sorted, is_hit bool, n_nonfinite, n_out_of_bounds, n_rays_failed).
+    """
+    rf = 1.0 / res
+    n = points.shape[0]
+    ox = np.float32(origin[0])
+    oy = np.float32(origin[1])
+    oz = np.float32(origin[2])
+    ok0 = np.empty(3, np.int64)
+    ok0[0] = _key_checked(ox, rf)
+    ok0[1] = _key_checked(oy, rf)
+    ok0[2] = _key_checked(oz, rf)
+    counters = np.zeros(4, np.int64)
+
+    # discretize: unique voxel centres of the endpoints (a set of keys: order does not matter)
+    pts = points
+    if discretize:
+        codes = np.empty(n, np.uint64)
+        m = 0
+        for i in range(n):
+            x = points[i, 0]
+            y = points[i, 1]
+            z = points[i, 2]
+            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+                counters[1] += 1
+                continue
+            kx = _key_checked(x, rf)
+            ky = _key_checked(y, rf)
+            kz = _key_checked(z, rf)
+            if kx < 0 or ky < 0 or kz < 0:
+                counters[2] += 1
+                continue
+            codes[m] = morton(kx, ky, kz)
+            m += 1
+        u = np.unique(codes[:m])
+        ks = codes_to_keys(u)
+        pts = np.empty((u.shape[0], 3), np.float32)
+        for i in range(u.shape[0]):
+            for a in range(3):
+                pts[i, a] = np.float32(_key_to_coord(ks[i, a], res))
+        n = pts.shape[0]
+
+    cap = 1 << 12
+    tab_keys = np.full(cap, _EMPTY, np.uint64)
+    tab_vals = np.empty(cap, np.int64)
+    pool_cap = 1024
+    pool = np.zeros(pool_cap * 512, np.uint8)
+    bcodes = np.empty(pool_cap, np.uint64)
+    i = 0
+    while True:
+        i = _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i, tab_keys, tab_vals, pool,
+                       bcodes, counters)
+        if i >= n:
+            break
+        nb = counters[0]
+        if nb >= pool_cap:
+            pool_cap *= 2
+            npool = np.zeros(pool_cap * 512, np.uint8)
+            npool[: nb * 512] = pool[: nb * 512]
+            pool = npool
+            nbc = np.empty(pool_cap, np.uint64)
+            nbc[:nb] = bcodes[:nb]
+            bcodes = nbc
+        if (nb + 1) * 2 > cap:
+            cap *= 4
+            mask = cap - 1
+            tab_keys = np.full(cap, _EMPTY, np.uint64)
+            tab_vals = np.empty(cap, np.int64)
+            for j in range(nb):
+                hh = _hash(bcodes[j], mask)
+                while tab_keys[hh] != _EMPTY:
+                    hh = (hh + 1) & mask
+                tab_keys[hh] = bcodes[j]
+                tab_vals[hh] = j
+    nb = counters[0]
+    n_nonfinite = counters[1]
+    n_oob = counters[2]
+    n_failed = counters[3]
 
     # emit in Morton order: bricks sorted by code, cells by local Morton index
     order = np.argsort(bcodes[:nb])
@@ -456,6 +464,30 @@ def scan_key_sets(points, origin, res, max_range, discretize):
 # --------------------------------------------------------------------------- tree updates
 
 
+@njit(cache=True, inline="always")
+def _msb(x):
+    """Index of the highest set bit of a non-zero uint64 (binary search, 6 steps)."""
+    b = 0
+    if x >> np.uint64(32):
+        x = x >> np.uint64(32)
+        b += 32
+    if x >> np.uint64(16):
+        x = x >> np.uint64(16)
+        b += 16
+    if x >> np.uint64(8):
+        x = x >> np.uint64(8)
+        b += 8
+    if x >> np.uint64(4):
+        x = x >> np.uint64(4)
+        b += 4
+    if x >> np.uint64(2):
+        x = x >> np.uint64(2)
+        b += 2
+    if x >> np.uint64(1):
+        b += 1
+    return b
+
+
 @njit(cache=True)
 def new_block_bound(codes):
     """Upper bound of the child blocks a batch of sorted codes can create (distinct ancestors)."""
@@ -467,10 +499,7 @@ def new_block_bound(codes):
         x = codes[i] ^ codes[i - 1]
         if x == 0:
             continue
-        b = 63
-        while (x >> np.uint64(b)) == 0:
-            b -= 1
-        total += 1 + b // 3
+        total += _msb(x) // 3
     return total
 
 
@@ -537,10 +566,7 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
             if x == 0:
                 shared = 16
             else:
-                b = 63
-                while (x >> np.uint64(b)) == 0:
-                    b -= 1
-                shared = 15 - b // 3
+                shared = 15 - _msb(x) // 3
             keep = min(shared, stk_len - 1)
             for d in range(stk_len - 1, keep, -1):
                 if dirty[d]:
@@ -1053,7 +1079,7 @@ def bt_decode(data, start, cmin, cmax):
     max_inner = avail // 2
     cap_blocks = max_inner + 1
     val = np.empty(cap_blocks * 8, np.float32)
-    first = np.full(cap_blocks * 8, -1, np.int64)
+    first = np.full(cap_blocks * 8, -1, np.int32)
     cmask = np.zeros(cap_blocks * 8, np.uint8)
     val[0] = cmax
     nb = 1
@@ -1121,7 +1147,7 @@ def ot_decode(data, start, node_bytes):
     cap_blocks = max_nodes + 2
     vb = node_bytes - 1
     payload = np.zeros((cap_blocks * 8, vb), np.uint8)
-    first = np.full(payload.shape[0], -1, np.int64)
+    first = np.full(payload.shape[0], -1, np.int32)
     cmask = np.zeros(payload.shape[0], np.uint8)
     nb = 1
     pos = start

@@ -84,6 +84,13 @@ def _pose_to_t_q(pose) -> tuple[np.ndarray, np.ndarray]:
     return m[:3, 3].copy(), np.array([w, x, y, z])
 
 
+def _same_pose(cached, t, q) -> bool:
+    ct = np.asarray(cached.t, dtype=np.float64)
+    cq = np.asarray(cached.q_wxyz, dtype=np.float64)
+    same_q = min(np.abs(cq - q).max(), np.abs(cq + q).max()) < 1e-6
+    return bool(np.abs(ct - t).max() < 1e-6 and same_q)
+
+
 def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: bool = False,
          tree: OcTree | None = None, progress: bool = False, **tree_kwargs) -> OcTree:
     """The OcTree of every node scan of ``pose_graph`` inserted at its node pose, in id order.
@@ -107,9 +114,12 @@ def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: boo
         if scan is None or scan.points is None or len(scan.points) == 0:
             continue
         t, q = _pose_to_t_q(node.pose)
-        q_raw = node.metadata.get("quaternion_wxyz") if hasattr(node, "metadata") else None
-        if q_raw is not None:
-            q = np.asarray(q_raw, dtype=np.float64)
+        # A node read from a .graph file keeps the file's float32 pose: use it while the pose
+        # is unchanged (a Pose3 -> quaternion round trip can move the last float32 bit).
+        cached = getattr(node, "metadata", {}).get("octomap_pose_f32")
+        if cached is not None and _same_pose(cached, t, q):
+            t = np.asarray(cached.t, dtype=np.float64)
+            q = np.asarray(cached.q_wxyz, dtype=np.float64)
         points_world, origin = transform_points_octomap(scan.points, t, q)
         tree.insert_point_cloud(points_world, origin, max_range=max_range,
                                 discretize=discretize)

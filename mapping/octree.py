@@ -164,7 +164,7 @@ class OcTree:
     def _alloc(self, n_blocks: int) -> None:
         n = n_blocks * 8
         self._val = np.zeros(n, np.float32)
-        self._first = np.full(n, -1, np.int64)
+        self._first = np.full(n, -1, np.int32)
         self._cmask = np.zeros(n, np.uint8)
         self._free = np.zeros(n_blocks, np.int64)
         self._state = np.array([0, 1], np.int64)  # free-stack size, next unused block
@@ -176,9 +176,10 @@ class OcTree:
             return
         new_cap = max(need, int(cap * 1.5) + 16)
         n_old = cap * 8
-        val = np.zeros(new_cap * 8, np.float32)
-        first = np.full(new_cap * 8, -1, np.int64)
-        cmask = np.zeros(new_cap * 8, np.uint8)
+        # slots beyond the used blocks are written before they are read: no initialisation
+        val = np.empty(new_cap * 8, np.float32)
+        first = np.empty(new_cap * 8, np.int32)
+        cmask = np.empty(new_cap * 8, np.uint8)
         val[:n_old] = self._val
         first[:n_old] = self._first
         cmask[:n_old] = self._cmask

@@ -97,7 +97,8 @@ def read_camera_file(path: str | os.PathLike) -> CameraIntrinsics:
 def write_camera_file(path: str | os.PathLike, intr: CameraIntrinsics) -> None:
     """Write ``intr`` as a camera file (atomically; format in docs/camera_file.md)."""
     with atomic_write(path, "w") as handle:
-        handle.write("# octofactor camera file: pinhole, no distortion; pixel centres at integers\n")
+        handle.write("# octofactor camera file: pinhole, no distortion; "
+                     "pixel centres at integers\n")
         handle.write("# depth_scale: depth PNG value per metre (TUM: 5000)\n")
         handle.write("# " + " ".join(_CAMERA_KEYS) + "\n")
         handle.write(f"{intr.fx!r} {intr.fy!r} {intr.cx!r} {intr.cy!r} {intr.width:d} "
@@ -174,7 +175,8 @@ def read_groundtruth(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             try:
                 row = [float(field) for field in fields]
             except ValueError:
-                raise FormatError(path, "ground-truth values must be numbers", line=number) from None
+                raise FormatError(path, "ground-truth values must be numbers",
+                                  line=number) from None
             norm = np.linalg.norm(row[4:])
             if not np.all(np.isfinite(row)) or abs(norm - 1.0) > 1e-3:
                 raise FormatError(path, "values must be finite and the quaternion of unit norm",

@@ -198,27 +198,29 @@ def test_manhattan_empty_results_without_exception():
 
 
 def test_yud_accuracy_and_covariance_calibration(shared_data):
-    """Aggregate over 13 real York Urban images (every 4th): accuracy and NEES calibration.
+    """Aggregates over the 51 real York Urban training images: accuracy and NEES calibration.
 
-    The default covariance (cov_scale=20) must put >= 70 % of the forward-VP NEES values under
-    the 95 % chi-square(2) quantile; the bare least-squares covariance (cov_scale=1) is the
-    negative control that must fail the same check."""
+    The default covariance (cov_scale=20) must put >= 80 % of the forward-VP NEES values under
+    the 95 % chi-square(2) quantile (label noise of the ground truth included); the bare
+    least-squares covariance (cov_scale=1) is the negative control that must fail the same
+    check."""
     cv2.setNumThreads(1)
+    bare_config = dataclasses.replace(ManhattanConfig(), cov_scale=1.0)
     errors, nees_default, nees_bare = [], [], []
-    for path, gt_dirs in _yud(shared_data):
+    for path, gt_dirs in _yud(shared_data, every=1, limit=51):
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        result = detect_manhattan(image, YUD_K)
-        error, value = _forward_error_and_nees(result, gt_dirs, YUD_K)
+        error, value = _forward_error_and_nees(detect_manhattan(image, YUD_K), gt_dirs, YUD_K)
         errors.append(error)
         nees_default.append(value)
-        bare = detect_manhattan(image, YUD_K, dataclasses.replace(ManhattanConfig(), cov_scale=1.0))
+        bare = detect_manhattan(image, YUD_K, bare_config)
         nees_bare.append(_forward_error_and_nees(bare, gt_dirs, YUD_K)[1])
     errors = np.array(errors)
-    assert np.median(errors) < 1.5, errors
-    assert np.mean(errors < 5.0) >= 11 / 13, errors
+    assert len(errors) == 51
+    assert np.median(errors) < 0.8, np.median(errors)
+    assert np.mean(errors < 5.0) >= 0.96, errors
     chi2_95 = 5.991
-    assert np.mean(np.array(nees_default) < chi2_95) >= 0.7, nees_default
-    assert not np.mean(np.array(nees_bare) < chi2_95) >= 0.7, nees_bare
+    assert np.mean(np.array(nees_default) < chi2_95) >= 0.8, nees_default
+    assert not np.mean(np.array(nees_bare) < chi2_95) >= 0.8, nees_bare
 
 
 # ----------------------------------------------------------------------------- files and CLI
@@ -290,3 +292,45 @@ def test_bad_inputs_raise_perception_errors():
         detect_manhattan(np.zeros((48, 64), np.uint8), np.eye(3) * 0.0)
     with pytest.raises(PerceptionError, match="shape"):
         detect_seed(np.zeros((4, 4, 4, 4), np.uint8))
+
+
+def test_lone_vertical_vp_is_not_forward_and_junctions_are_not_vps():
+    """A camera facing a wall sees only verticals (one VP, not 'forward'); long segments
+    meeting at a junction must not be taken for a VP (a segment's image never reaches its
+    VP). Control: with the on-segment check disabled the junction wins."""
+    verticals = np.array([[x, 100, x, 220] for x in (40, 300, 420, 520, 600)], float)
+    angles = np.radians([10, 75, 160, 200, 250, 320])
+    junction = np.column_stack([np.full(6, 330.0), np.full(6, 260.0),
+                                330 + 200 * np.cos(angles), 260 + 200 * np.sin(angles)])
+    segments = np.vstack([verticals, junction])
+    result = manhattan_from_segments(segments, K_SYN)
+    assert len(result.vps) == 1
+    assert abs(result.vps[0].direction[1]) > 0.99 and len(result.vps[0].inliers) == 5
+    assert result.forward() is None
+    assert result.forward(min_abs_dz=0.0) is result.vps[0]
+    unchecked = manhattan_from_segments(segments, K_SYN, ManhattanConfig(vp_gap_px=-1e4))
+    assert np.linalg.norm(unchecked.forward().uv - [330, 260]) < 1.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2 ** 20), n=st.integers(0, 40), repeat=st.integers(1, 4),
+       collinear=st.booleans())
+def test_arbitrary_segments_never_raise(seed, n, repeat, collinear):
+    """Property: any segment set (duplicates, collinear pieces, zero length) gives a result,
+    never an exception, and every reported VP is well formed."""
+    rng = np.random.default_rng(seed)
+    segments = rng.uniform(0, 640, size=(n, 4))
+    if collinear and n:
+        # pieces of a few lines only: degenerate interpretation planes
+        base = segments[: max(1, n // 8)]
+        t = rng.uniform(0, 1, size=(n, 2))
+        pick = base[rng.integers(0, len(base), n)]
+        start = pick[:, :2] + t[:, :1] * (pick[:, 2:] - pick[:, :2])
+        end = pick[:, :2] + t[:, 1:] * (pick[:, 2:] - pick[:, :2])
+        segments = np.hstack([start, end])
+    segments = np.vstack([segments] * repeat)
+    result = manhattan_from_segments(segments, K_SYN)
+    assert len(result.vps) <= 3
+    for vp in result.vps:
+        assert np.isclose(np.linalg.norm(vp.direction), 1.0) and vp.direction[2] >= 0
+        assert vp.cov.shape == (2, 2) and not np.any(np.isnan(vp.cov))

@@ -20,12 +20,14 @@ from .gicp import (
     register,
 )
 from .metrics import PoseError, pose_error
-from .semantic_icp import semantic_icp, gicp_se3
+from .semantic_icp import gicp_se3, semantic_icp
+from .transform_file import read_transform, write_transform
 
 __all__ = [
     "BatchedGicpFactor", "Correspondences", "PoseError", "Registration", "RegistrationConfig",
     "RegistrationResult", "SemanticIndex", "UNCONSTRAINED_VARIANCE", "cauchy_loss",
     "cauchy_weight", "covariance_from_information", "gicp_se3", "gicp_terms",
     "nearest_correspondences", "point_covariances", "pose_error", "register", "semantic_icp",
-    "semantic_correspondences", "skew", "transform_points", "whitening",
+    "semantic_correspondences", "skew", "transform_points", "whitening", "read_transform",
+    "write_transform",
 ]

@@ -67,7 +67,7 @@ def nearest_correspondences(source_in_target: np.ndarray, target_tree: cKDTree,
                             d_max: float) -> Correspondences:
     """Return nearest-neighbour pairs closer than ``d_max`` (ICP's omega_i of eq. (2))."""
     n = len(source_in_target)
-    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max, workers=-1)
+    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max)
     ok = np.isfinite(dist)
     src = np.nonzero(ok)[0]
     return Correspondences(src, idx[ok].astype(np.int64), np.ones(len(src)), dist[ok], n)
@@ -106,7 +106,8 @@ class SemanticIndex:
 def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndarray,
                              index: SemanticIndex, d_max: float,
                              residual_sigma: float, top_classes: int = 2,
-                             min_weight: float = 1e-3) -> Correspondences:
+                             min_weight: float = 1e-3,
+                             min_class_prob: float = 0.1) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
     For each source point and each of its ``top_classes`` most probable classes c, the
@@ -118,7 +119,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
 
     with an isotropic Gaussian residual likelihood of standard deviation ``residual_sigma``
     (the current alignment uncertainty, annealed by the caller). Candidates with omega below
-    ``min_weight`` are dropped.
+    ``min_weight`` are dropped; classes after the most probable one are only searched where
+    their probability reaches ``min_class_prob`` (the rest could not pass ``min_weight``).
     """
     n, c_src = source_probs.shape
     if c_src != index.n_classes:
@@ -129,12 +131,13 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     src_rows, tgt_rows, dists, prior = [], [], [], []
     for rank in range(top):
         cls_of_point = order[:, rank]
+        searched = np.ones(n, bool) if rank == 0 else \
+            source_probs[np.arange(n), cls_of_point] >= min_class_prob
         for c, tree in index.trees.items():
-            rows = np.nonzero(cls_of_point == c)[0]
+            rows = np.nonzero((cls_of_point == c) & searched)[0]
             if len(rows) == 0:
                 continue
-            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
-                                 workers=-1)
+            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max)
             ok = np.isfinite(dist)
             if not ok.any():
                 continue

@@ -70,14 +70,14 @@ class RegistrationConfig:
     max_iterations: int = 60
     inner_iterations: int = 1
     optimizer: str = "gn"
-    tolerance: float = 1e-5
+    tolerance: float = 1e-4
     semantic_weight: str = "outside"
     top_classes: int = 2
     min_inliers: int = 12
     covariance: str = "sandwich"
-    degeneracy_ratio: float = 1e-3
+    degeneracy_ratio: float = 1e-4
     cluster_size: float | None = None
-    cluster_factor: float = 1.5
+    cluster_factor: float = 1.0
 
     def __post_init__(self):
         if self.max_correspondence_distance <= 0:
@@ -295,6 +295,7 @@ class Registration:
         converged = False
         reason = "max iterations"
         iterations = 0
+        T_prev = None
         for iterations in range(1, cfg.max_iterations + 1):
             corr = self.correspondences(T, d)
             if len(corr) < cfg.min_inliers:
@@ -309,12 +310,20 @@ class Registration:
             factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
             T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations)
             step = np.linalg.norm(gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new))))
-            T = T_new
             annealed = d <= d_final * (1 + 1e-9)
             d = max(d * cfg.decay, d_final)
             if annealed and step < cfg.tolerance:
+                T = T_new
                 converged, reason = True, "converged"
                 break
+            # nearest-neighbour sets can alternate forever between two poses: stop in the middle
+            if annealed and T_prev is not None and np.linalg.norm(gtsam.Pose3.Logmap(
+                    gtsam.Pose3(T_prev).between(gtsam.Pose3(T_new)))) < cfg.tolerance:
+                half = 0.5 * gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new)))
+                T = (gtsam.Pose3(T) * gtsam.Pose3.Expmap(half)).matrix()
+                converged, reason = True, "converged (two-cycle of correspondence sets)"
+                break
+            T_prev, T = T, T_new
         return self._finish(T, d_final, converged, reason, iterations, cost_log, start)
 
     def _finish(self, T, d_max, converged, reason, iterations, cost_log, start):
@@ -399,7 +408,7 @@ def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndar
 
 def covariance_from_information(H: np.ndarray, B: np.ndarray | None, scale: float,
                                 H_normal: np.ndarray | None = None,
-                                degeneracy_ratio: float = 1e-3) -> tuple[np.ndarray, int]:
+                                degeneracy_ratio: float = 1e-4) -> tuple[np.ndarray, int]:
     """Return (covariance, number of unconstrained directions) from the Gauss-Newton data.
 
     ``B is None`` gives the raw inverse Hessian ``H^-1``; otherwise the sandwich

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from ..geometry import d_se3
+
 
 @dataclass(frozen=True)
 class PoseError:
@@ -31,7 +33,7 @@ def pose_error(T_est: np.ndarray | gtsam.Pose3, T_gt: np.ndarray | gtsam.Pose3) 
     est = T_est if isinstance(T_est, gtsam.Pose3) else gtsam.Pose3(np.asarray(T_est, float))
     gt = T_gt if isinstance(T_gt, gtsam.Pose3) else gtsam.Pose3(np.asarray(T_gt, float))
     # eq. (9): d_SE(3)(T*; T_GT) = ||log(T* T_GT^-1)||
-    d = float(np.linalg.norm(gtsam.Pose3.Logmap(est.compose(gt.inverse()))))
+    d = d_se3(est, gt)
     rel = gt.between(est)
     return PoseError(d, float(np.linalg.norm(rel.translation())),
                      float(np.linalg.norm(gtsam.Rot3.Logmap(rel.rotation()))),

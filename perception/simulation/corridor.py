@@ -345,53 +345,63 @@ def render_frame(scene: CorridorScene, T_world_camera: gtsam.Pose3, intr: Camera
     if intr not in _DIRECTION_CACHE:
         _DIRECTION_CACHE[intr] = _pixel_directions(intr)
     directions_camera = _DIRECTION_CACHE[intr]
-    R = T_world_camera.rotation().matrix().astype(np.float32)
-    rays = np.empty((directions_camera.shape[0], 6), dtype=np.float32)
-    rays[:, :3] = np.asarray(T_world_camera.translation(), dtype=np.float32)
-    np.matmul(directions_camera, R.T, out=rays[:, 3:])
+    make_rays, shade = _kernels()
+    rays = make_rays(directions_camera, T_world_camera.rotation().matrix().astype(np.float32),
+                     np.asarray(T_world_camera.translation(), dtype=np.float32))
     hits = scene.raycasting.cast_rays(o3d.core.Tensor.from_numpy(rays))
-    n = rays.shape[0]
     noisy = rng is not None
-    if noisy:
-        # one draw per pixel and purpose, in a fixed order, so a seed gives identical frames
-        rgb_noise = rng.standard_normal(n, dtype=np.float32) * np.float32(config.rgb_noise)
-        depth_noise = rng.standard_normal(n, dtype=np.float32) * np.float32(config.depth_noise)
-        dropout = rng.random(n, dtype=np.float32) < np.float32(config.dropout)
-    else:
-        rgb_noise = depth_noise = np.zeros(1, np.float32)
-        dropout = np.zeros(1, dtype=bool)
-    rgb, depth = _shade_kernel()(
+    # one seed per frame drawn from the caller's generator: a seed gives identical frames
+    frame_seed = int(rng.integers(0, 2 ** 31 - 1)) if noisy else 0
+    rgb, depth = shade(
         rays, hits["t_hit"].numpy(), hits["geometry_ids"].numpy(),
         hits["primitive_ids"].numpy(), hits["primitive_normals"].numpy(),
         scene.geometry_offset, scene.triangle_albedo, scene.lamps, scene.texture,
-        np.float32(config.texture), np.float32(_TEXEL), noisy, rgb_noise, depth_noise, dropout,
+        np.float32(config.texture), np.float32(_TEXEL), noisy, frame_seed,
+        np.float32(config.rgb_noise), np.float32(config.depth_noise), np.float32(config.dropout),
         np.float32(config.grazing_cos), np.float32(config.min_depth),
         np.float32(config.max_depth), np.float32(intr.depth_scale))
+    if noisy:
+        # the same float32 division as perception.rgbd.read_depth: files and memory agree
+        depth = np.minimum(depth, np.float32(np.iinfo(np.uint16).max)) / np.float32(
+            intr.depth_scale)
     return rgb.reshape(intr.height, intr.width, 3), depth.reshape(intr.height, intr.width)
 
 
-_KERNEL = None
+_KERNELS = None
 
 
-def _shade_kernel():
-    """The compiled per-pixel colour kernel (numba, compiled on first use and cached).
+def _kernels():
+    """The compiled ray and per-pixel shading kernels (numba, compiled on first use, cached).
 
     Per pixel: albedo of the hit triangle x (ambient + diffuse light of the ceiling lamps,
     which are fixed in the world so brightness is constant across frames, as photometric
     odometry assumes) x (1 + faint texture), plus grey-level noise. The texture is a
     bilinear lookup of a periodic random field in each plane's own two coordinates.
     """
-    global _KERNEL
-    if _KERNEL is not None:
-        return _KERNEL
+    global _KERNELS
+    if _KERNELS is not None:
+        return _KERNELS
     import numba
 
     texture_size = _TEXTURE_SIZE
 
+    @numba.njit(cache=True, nogil=True)
+    def make_rays(directions, R, origin):
+        n = directions.shape[0]
+        rays = np.empty((n, 6), dtype=np.float32)
+        for i in range(n):
+            dx, dy, dz = directions[i, 0], directions[i, 1], directions[i, 2]
+            for r in range(3):
+                rays[i, r] = origin[r]
+                rays[i, 3 + r] = R[r, 0] * dx + R[r, 1] * dy + R[r, 2] * dz
+        return rays
+
     @numba.njit(cache=True, fastmath=True, nogil=True)
     def kernel(rays, t_hit, geometry, primitive, normals, offsets, albedo, lamps, texture,
-               amplitude, texel, noisy, rgb_noise, depth_noise, dropout, grazing_cos,
-               min_depth, max_depth, depth_scale):
+               amplitude, texel, noisy, seed, rgb_sigma, depth_coefficient, dropout,
+               grazing_cos, min_depth, max_depth, depth_scale):
+        if noisy:
+            np.random.seed(seed)  # numba's own generator state, not NumPy's
         n = t_hit.shape[0]
         out = np.zeros((n, 3), dtype=np.uint8)
         depth = np.zeros(n, dtype=np.float32)
@@ -407,11 +417,15 @@ def _shade_kernel():
             shade = np.float32(0.45)
             for k in range(lamps.shape[0]):
                 dx = lamps[k, 0] - px
+                # a smooth 6 m window (fixed in the world) skips the far lamps cheaply
+                if abs(dx) > 6.0:
+                    continue
+                window = 1.0 - (dx / 6.0) ** 2
                 dy = lamps[k, 1] - py
                 dz = lamps[k, 2] - pz
                 dist2 = dx * dx + dy * dy + dz * dz + np.float32(0.25)
                 cos = abs(dx * nx + dy * ny + dz * nz) / np.sqrt(dist2)
-                shade += np.float32(0.9) * cos / dist2
+                shade += np.float32(0.9) * window * window * cos / dist2
             shade = min(shade, np.float32(1.2))
             ax, ay, az = abs(nx), abs(ny), abs(nz)
             # plane coordinates: x-facing -> (y, z), y-facing -> (x, z), z-facing -> (x, y);
@@ -436,7 +450,7 @@ def _shade_kernel():
                    + (texture[j1, i0] * (1 - fs) + texture[j1, i1] * fs) * fr)
             gain = shade * (1.0 + amplitude * tex) * 255.0
             row = offsets[geometry[i]] + primitive[i]
-            grey = rgb_noise[i] if noisy else np.float32(0.0)
+            grey = rgb_sigma * np.random.standard_normal() if noisy else 0.0
             for c in range(3):
                 value = albedo[row, c] * gain + grey
                 out[i, c] = np.uint8(min(max(np.rint(value), 0.0), 255.0))
@@ -446,17 +460,18 @@ def _shade_kernel():
             if noisy:
                 ray_norm = np.sqrt(dx0 * dx0 + dy0 * dy0 + dz0 * dz0)
                 cos_incidence = abs(dx0 * nx + dy0 * ny + dz0 * nz) / ray_norm
-                if dropout[i] or cos_incidence < grazing_cos:
+                if np.random.random() < dropout or cos_incidence < grazing_cos:
                     continue
                 # Xtion-like: sigma grows with z^2; stored with the PNG's step 1/depth_scale
-                z = t + depth_noise[i] * t * t
-                depth[i] = np.float32(np.rint(z * depth_scale) / depth_scale)
+                # (stored as PNG counts here; divided outside exactly as the reader does)
+                z = t + depth_coefficient * np.random.standard_normal() * t * t
+                depth[i] = np.rint(z * depth_scale)
             else:
                 depth[i] = t
         return out, depth
 
-    _KERNEL = kernel
-    return _KERNEL
+    _KERNELS = (make_rays, kernel)
+    return _KERNELS
 
 
 def simulate_corridor(out_dir: str | os.PathLike, config: CorridorConfig = CorridorConfig(),
@@ -488,7 +503,7 @@ def simulate_corridor(out_dir: str | os.PathLike, config: CorridorConfig = Corri
             handle.write(encode_rgb_png(rgb))
         with atomic_write(out / "depth" / names[k], "wb") as handle:
             handle.write(encode_depth_png(depth, intr.depth_scale))
-    header = "# octofactor simulated corridor, seed {}\n".format(config.seed)
+    header = f"# octofactor simulated corridor, seed {config.seed}\n"
     for kind in ("rgb", "depth"):
         with atomic_write(out / f"{kind}.txt", "w") as handle:
             handle.write(header + "# timestamp filename\n")

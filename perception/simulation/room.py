@@ -35,6 +35,7 @@ import gtsam
 import numpy as np
 
 from estimation.fileio import atomic_write
+from estimation.registration.transform_file import write_transform
 from perception.errors import PerceptionError
 from perception.semantic_cloud import SemanticCloud
 
@@ -340,13 +341,6 @@ def headset_cloud(room: Room, view: str, config: RoomConfig | None = None
     return cloud, T_map_headset
 
 
-def write_matrix(path: str | os.PathLike, T: np.ndarray) -> None:
-    """Write a 4x4 matrix as text (one row per line), atomically."""
-    with atomic_write(path, "w") as handle:
-        for row in np.asarray(T, dtype=float):
-            handle.write(" ".join(f"{v:.17g}" for v in row) + "\n")
-
-
 def simulate_room(out_dir: str | os.PathLike, config: RoomConfig | None = None,
                   views: tuple[str, ...] | None = None) -> dict:
     """Write the room data set to ``out_dir``; return {name: path} of what was written."""
@@ -361,7 +355,7 @@ def simulate_room(out_dir: str | os.PathLike, config: RoomConfig | None = None,
     for view in views or tuple(VIEWPOINTS):
         cloud, T = headset_cloud(room, view, cfg)
         cloud.write_ply(out / f"headset_{view}.ply")
-        write_matrix(out / f"T_map_headset_{view}.txt", T)
+        write_transform(out / f"T_map_headset_{view}.txt", T)
         written[f"headset_{view}"] = out / f"headset_{view}.ply"
         written[f"T_map_headset_{view}"] = out / f"T_map_headset_{view}.txt"
     with atomic_write(out / "classes.txt", "w") as handle:

@@ -1,0 +1,199 @@
+"""Speed of mapping.OcTree against liboctomap (octomap-python), measured in the same run.
+
+Prints medians of repeats and the ratio ours/liboctomap (throughput) for: insertion of scan.dat
+(88k points, one scan) at 0.1 and 0.05 m, a synthetic corridor of 50 scans x 100k points as the
+map grows, batched search, batched cast_ray, leaf traversal, memory, and .bt/.ot read/write.
+
+    .venv/bin/python benchmarks/octree.py [--quick] [--repeats N]
+"""
+from __future__ import annotations
+
+import argparse
+import bz2
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import octomap  # noqa: E402
+
+from mapping import OcTree  # noqa: E402
+
+
+def median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def row(name: str, ours: float, ref: float, unit: str, higher_is_better: bool = True) -> None:
+    ratio = ours / ref if higher_is_better else ref / ours
+    print(f"{name:<46} ours {ours:>12.4g} {unit:<8} liboctomap {ref:>12.4g} {unit:<8} "
+          f"ratio {ratio:7.2f}x")
+
+
+def corridor_scans(n_scans: int, n_points: int, seed: int = 0):
+    """Scans of a 2 m x 2.5 m corridor along x, sensor moving 0.2 m per scan (points in world)."""
+    rng = np.random.default_rng(seed)
+    half_w, height = 1.0, 2.5
+    scans = []
+    for s in range(n_scans):
+        origin = np.array([0.2 * s, 0.1 * np.sin(s), 1.2])
+        d = rng.normal(size=(n_points, 3))
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        t = np.full(n_points, np.inf)
+        for axis, lo, hi in ((1, -half_w, half_w), (2, 0.0, height)):
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t_lo = (lo - origin[axis]) / d[:, axis]
+                t_hi = (hi - origin[axis]) / d[:, axis]
+            for tt in (t_lo, t_hi):
+                t = np.where((tt > 0) & (tt < t), tt, t)
+        t = np.minimum(t, 25.0)  # open corridor ends: a far wall at 25 m
+        pts = origin + d * t[:, None] + rng.normal(scale=0.01, size=(n_points, 3))
+        scans.append((pts.astype(np.float32), origin))
+    return scans
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="smaller corridor, fewer repeats")
+    ap.add_argument("--repeats", type=int, default=None)
+    args = ap.parse_args()
+    repeats = args.repeats or (3 if args.quick else 5)
+    data = REPO.parent / "shared" / "data" / "octomap"
+    if not data.is_dir():
+        data = Path("/work/shared/data/octomap")
+    text = bz2.decompress((data / "scan.dat.bz2").read_bytes()).decode()
+    scan = np.loadtxt(text.splitlines(), dtype=np.float64).astype(np.float32)
+    scan64 = scan.astype(np.float64)
+    zero = np.zeros(3)
+
+    # warm up the numba kernels (compiled once, cached on disk)
+    w = OcTree(0.5)
+    w.insert_point_cloud(scan[:100], zero)
+    w.search(scan[:10])
+    w.cast_ray(zero[None], np.ones((1, 3)))
+    w.leaves()
+    w.to_bytes_bt()
+
+    print(f"# mapping.OcTree vs liboctomap (octomap-python), medians of {repeats} repeats")
+    print("## insertion, scan.dat (88,206 points, one scan from the origin)")
+    for res, max_range in ((0.1, -1.0), (0.1, 10.0), (0.05, 10.0), (0.05, -1.0)):
+        t_ours = median_time(lambda: OcTree(res).insert_point_cloud(scan, zero, max_range),
+                             repeats)
+        t_ref = median_time(lambda: octomap.OcTree(res).insertPointCloud(scan64, zero,
+                                                                          maxrange=max_range),
+                            max(1, repeats // 2))
+        row(f"insert scan.dat res {res} max_range {max_range:g}", len(scan) / t_ours / 1e6,
+            len(scan) / t_ref / 1e6, "Mpts/s")
+
+    n_scans, n_pts = (10, 20_000) if args.quick else (50, 100_000)
+    scans = corridor_scans(n_scans, n_pts)
+    print(f"## insertion, synthetic corridor {n_scans} scans x {n_pts} points (map grows)")
+    for res in (0.1, 0.05):
+        def ours():
+            t = OcTree(res)
+            for p, o in scans:
+                t.insert_point_cloud(p, o, max_range=10.0)
+            return t
+
+        def ref():
+            t = octomap.OcTree(res)
+            for p, o in scans:
+                t.insertPointCloud(p.astype(np.float64), o, maxrange=10.0)
+            return t
+
+        t_ours = median_time(ours, max(1, repeats // 2))
+        t_ref = median_time(ref, 1)
+        total = n_scans * n_pts
+        row(f"insert corridor res {res} max_range 10", total / t_ours / 1e6,
+            total / t_ref / 1e6, "Mpts/s")
+
+    tree = OcTree(0.05)
+    tree.insert_point_cloud(scan, zero, 10.0)
+    ref_tree = octomap.OcTree.read(tree.to_bytes_ot())
+    rng = np.random.default_rng(0)
+    print(f"## queries on scan.dat at 0.05 m, max range 10 ({tree.size()} nodes)")
+    q = rng.uniform(-10, 10, size=(1_000_000, 3)).astype(np.float32)
+    t_ours = median_time(lambda: tree.search(q), repeats)
+    q_small = q[:20_000].astype(np.float64)
+
+    def ref_search():
+        for p in q_small:
+            try:
+                ref_tree.search(p)
+            except octomap.NullPointerException:
+                pass
+
+    t_ref = median_time(ref_search, 1)
+    row("search (batched, ours) vs per call", len(q) / t_ours / 1e6,
+        len(q_small) / t_ref / 1e6, "Mq/s")
+
+    n_rays = 100_000
+    dirs = rng.normal(size=(n_rays, 3))
+    t_ours = median_time(lambda: tree.cast_ray(zero[None], dirs, ignore_unknown=True,
+                                               max_range=15.0), repeats)
+    end = np.zeros(3)
+
+    def ref_rays():
+        for d in dirs[:5000]:
+            ref_tree.castRay(zero, d, end, True, 15.0)
+
+    t_ref = median_time(ref_rays, 1)
+    row("cast_ray (batched) vs per call", n_rays / t_ours / 1e3, 5000 / t_ref / 1e3, "krays/s")
+
+    def ours_leaves():
+        tree._cache = None
+        lv = tree.leaves()
+        return lv.centers.sum()
+
+    def ref_leaves():
+        s = 0.0
+        for n in ref_tree.begin_leafs():
+            s += n.getValue()
+        return s
+
+    t_ours = median_time(ours_leaves, repeats)
+    t_ref = median_time(ref_leaves, 1)
+    n_leaves = tree.num_leaf_nodes()
+    row("leaf traversal (arrays vs iterator)", n_leaves / t_ours / 1e6, n_leaves / t_ref / 1e6,
+        "Mleaf/s")
+
+    print("## memory")
+    row("memory (bytes; ratio = liboctomap/ours)", tree.memory_bytes(), ref_tree.memoryUsage(),
+        "B", higher_is_better=False)
+
+    print("## files (geb079.bt, 532,566 nodes)")
+    geb = data / "geb079.bt"
+    with tempfile.TemporaryDirectory() as tmp:
+        g = OcTree.read(geb)
+        rg = octomap.OcTree(0.1)
+        rg.readBinary(str(geb).encode())
+        t_ours = median_time(lambda: OcTree.read(geb), repeats)
+        t_ref = median_time(lambda: octomap.OcTree(0.1).readBinary(str(geb).encode()), repeats)
+        row(".bt read", 1 / t_ours, 1 / t_ref, "files/s")
+        out = Path(tmp) / "g.bt"
+        t_ours = median_time(lambda: g.write_bt(out), repeats)
+        t_ref = median_time(lambda: rg.writeBinary(str(out).encode()), repeats)
+        row(".bt write", 1 / t_ours, 1 / t_ref, "files/s")
+        out = Path(tmp) / "g.ot"
+        t_ours = median_time(lambda: g.write_ot(out), repeats)
+        t_ref = median_time(lambda: rg.write(str(out).encode()), repeats)
+        row(".ot write", 1 / t_ours, 1 / t_ref, "files/s")
+        t_ours = median_time(lambda: OcTree.read(out), repeats)
+        t_ref = median_time(lambda: octomap.OcTree.read(str(out).encode()), repeats)
+        row(".ot read", 1 / t_ours, 1 / t_ref, "files/s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

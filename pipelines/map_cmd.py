@@ -1,0 +1,117 @@
+"""``octofactor map`` (fuse a scan graph into an octree) and ``octofactor octree info|convert|
+export`` (inspect and convert .bt/.ot files). Heavy imports stay inside the run functions."""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def register(add_command) -> None:
+    p = add_command("map", "fuse the scans of a .graph file into an octree (.bt or .ot), "
+                    "byte-identical to graph2tree")
+    p.add_argument("graph", help="OctoMap ScanGraph .graph file (points in the sensor frame)")
+    p.add_argument("-r", "--resolution", type=float, default=0.1, help="leaf size in m (0.1)")
+    p.add_argument("--max-range", type=float, default=-1.0,
+                   help="cut rays at this range in m (-1 = no limit, graph2tree -m)")
+    p.add_argument("--discretize", action="store_true",
+                   help="insert voxel centres of the endpoints (graph2tree -discretize)")
+    p.add_argument("-o", "--output", required=True,
+                   help="OUT.bt (max-likelihood, pruned) or OUT.ot (full log-odds, pruned)")
+    p.set_defaults(func=run_map)
+
+    p = add_command("info", "print size, leaves, bounds and memory of a .bt/.ot file",
+                    group="octree")
+    p.add_argument("file")
+    p.set_defaults(func=run_info)
+
+    p = add_command("convert", "convert between .bt and .ot (by extension)", group="octree")
+    p.add_argument("input")
+    p.add_argument("output")
+    p.set_defaults(func=run_convert)
+
+    p = add_command("export", "export occupied voxels to .ply, or a height slice to .png",
+                    group="octree")
+    p.add_argument("file")
+    p.add_argument("-o", "--output", required=True, help="OUT.ply or OUT.png")
+    p.add_argument("--height", type=float, default=None,
+                   help="slice height in m for .png (default: the middle of the map)")
+    p.set_defaults(func=run_export)
+
+
+def run(args: argparse.Namespace) -> int:
+    return run_map(args)
+
+
+def _check_ext(path: str, allowed: tuple[str, ...]) -> str:
+    from estimation.errors import OctofactorError
+
+    ext = Path(path).suffix.lower()
+    if ext not in allowed:
+        raise OctofactorError(f"{path}: extension must be one of {', '.join(allowed)}")
+    return ext
+
+
+def run_map(args: argparse.Namespace) -> int:
+    from estimation.errors import OctofactorError
+    from estimation.io import read_scan_graph
+    from mapping import fuse
+
+    ext = _check_ext(args.output, (".bt", ".ot"))
+    if not args.resolution > 0:
+        raise OctofactorError(f"resolution must be positive, got {args.resolution}")
+    graph = read_scan_graph(args.graph)
+    tree = fuse(graph, args.resolution, max_range=args.max_range, discretize=args.discretize,
+                progress=sys.stderr.isatty())
+    if ext == ".bt":
+        tree.write_bt(args.output)
+    else:
+        tree.write_ot(args.output)
+    print(f"{args.output}: {tree.size()} nodes, {tree.num_leaf_nodes()} leaves, "
+          f"resolution {args.resolution:g} m")
+    return 0
+
+
+def run_info(args: argparse.Namespace) -> int:
+    from mapping import OcTree
+
+    tree = OcTree.read(args.file)
+    lo, hi = tree.metric_bounds()
+    occ = tree.occupied_voxels()
+    print(f"file: {args.file}")
+    print(f"type: {getattr(tree, '_file_id', None) or tree.tree_type}")
+    print(f"resolution: {tree.resolution:g} m")
+    print(f"nodes: {tree.size()} ({tree.num_inner_nodes()} inner, {tree.num_leaf_nodes()} "
+          f"leaves, {len(occ)} occupied)")
+    print(f"bounds: [{lo[0]:.2f}, {lo[1]:.2f}, {lo[2]:.2f}] .. [{hi[0]:.2f}, {hi[1]:.2f}, "
+          f"{hi[2]:.2f}] m")
+    print(f"memory (liboctomap memoryUsage): {tree.memory_usage()} B")
+    return 0
+
+
+def run_convert(args: argparse.Namespace) -> int:
+    from mapping import OcTree
+
+    ext = _check_ext(args.output, (".bt", ".ot"))
+    tree = OcTree.read(args.input)
+    if ext == ".bt":
+        tree.write_bt(args.output)
+    else:
+        tree.write_ot(args.output)
+    print(f"{args.output}: {tree.size()} nodes")
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from mapping import OcTree
+    from mapping.export import save_height_slice, write_ply
+
+    ext = _check_ext(args.output, (".ply", ".png"))
+    tree = OcTree.read(args.file)
+    if ext == ".ply":
+        n = write_ply(tree, args.output)
+        print(f"{args.output}: {n} occupied voxels")
+    else:
+        save_height_slice(tree, args.output, height=args.height)
+        print(f"{args.output}: height slice")
+    return 0

@@ -1,0 +1,113 @@
+"""`octofactor vpslam SEQ_DIR -o OUT`: vanishing-point EKF SLAM on a TUM-layout RGB-D sequence."""
+from __future__ import annotations
+
+import argparse
+
+
+def register(add_command) -> None:
+    parser = add_command(
+        "vpslam", "vanishing-point EKF SLAM (Ji et al.) on a TUM-layout RGB-D sequence: "
+                  "trajectory, pose graph, octree map, figure and report")
+    parser.add_argument("seq_dir", metavar="SEQ_DIR",
+                        help="folder with rgb.txt, depth.txt, camera.txt [, groundtruth.txt]")
+    parser.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY", type=_intrinsics,
+                        help="override the sequence's camera file (image size from camera.txt "
+                             "or the first image)")
+    parser.add_argument("--depth-scale", type=float, default=None,
+                        help="depth PNG units per metre (TUM: 5000; default from camera.txt)")
+    parser.add_argument("--no-vp", action="store_true",
+                        help="VO only, no vanishing-point update (the paper's baseline)")
+    parser.add_argument("--vp-model", choices=("point", "manhattan"), default="point",
+                        help="point: the paper's VP point (eq. (11)-(13)); manhattan: up to "
+                             "three Manhattan VPs as directions")
+    parser.add_argument("--vp-distance", type=float, default=1000.0,
+                        help="d of eq. (12) in metres (default 1000: the VP acts as a direction)")
+    parser.add_argument("--gate", type=float, default=None,
+                        help="chi-square gate of eq. (15), 2 dof (default: 99 %% = 9.21)")
+    parser.add_argument("--resolution", type=float, default=0.05, help="octree leaf size (m)")
+    parser.add_argument("--max-range", type=float, default=5.0,
+                        help="cut map rays at this range (m, -1: no limit)")
+    parser.add_argument("--no-map", action="store_true", help="skip clouds and octree")
+    parser.add_argument("--max-frames", type=int, default=None, help="use the first N frames")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(func=run)
+
+
+def _intrinsics(text: str) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 4 or not all(v > 0 for v in values[:2]):
+        raise argparse.ArgumentTypeError("expected fx,fy,cx,cy (four numbers, fx and fy > 0)")
+    return values
+
+
+def run(args) -> int:
+    import json
+    import sys
+    from dataclasses import replace
+    from pathlib import Path
+
+    from estimation.errors import OctofactorError
+    from pipelines.vpslam import VpSlamConfig, run_vpslam
+
+    intrinsics = None
+    if args.intrinsics is not None or args.depth_scale is not None:
+        intrinsics = _resolve_intrinsics(Path(args.seq_dir), args.intrinsics, args.depth_scale)
+    config = VpSlamConfig(vp_model="none" if args.no_vp else args.vp_model,
+                          vp_distance=args.vp_distance, map_resolution=args.resolution,
+                          max_range=args.max_range, build_map=not args.no_map)
+    if args.gate is not None:
+        if not args.gate > 0:
+            raise OctofactorError(f"--gate must be positive, got {args.gate}")
+        config = replace(config, gate_chi2=args.gate)
+    result = run_vpslam(args.seq_dir, args.out, config, intrinsics=intrinsics,
+                        progress=not args.quiet, max_frames=args.max_frames)
+    summary = {k: result.report.get(k) for k in (
+        "frames", "vp_updates", "vp_gated", "ate_rmse_m", "final_drift_xyz_m",
+        "ms_per_frame_median", "total_ms_per_frame_median")}
+    print(json.dumps(summary), file=sys.stdout)
+    return 0
+
+
+def _resolve_intrinsics(seq_dir, fx_fy_cx_cy, depth_scale):
+    """CameraIntrinsics from --intrinsics / --depth-scale over camera.txt (or the first image)."""
+    from dataclasses import replace
+
+    from estimation.errors import FormatError
+    from perception.rgbd import CAMERA_FILE_NAME, CameraIntrinsics, read_camera_file
+
+    camera_file = seq_dir / CAMERA_FILE_NAME
+    if camera_file.is_file():
+        base = read_camera_file(camera_file)
+    else:
+        if fx_fy_cx_cy is None:
+            raise FormatError(camera_file, "camera file not found (give --intrinsics)")
+        width, height = _first_image_size(seq_dir)
+        base = CameraIntrinsics(*fx_fy_cx_cy, width, height)
+    if fx_fy_cx_cy is not None:
+        fx, fy, cx, cy = fx_fy_cx_cy
+        base = replace(base, fx=fx, fy=fy, cx=cx, cy=cy)
+    if depth_scale is not None:
+        if not depth_scale > 0:
+            from estimation.errors import OctofactorError
+            raise OctofactorError(f"--depth-scale must be positive, got {depth_scale}")
+        base = replace(base, depth_scale=depth_scale)
+    return base
+
+
+def _first_image_size(seq_dir) -> tuple[int, int]:
+    import cv2
+
+    from estimation.errors import FormatError
+    from perception.rgbd import read_timestamp_list
+
+    _, names = read_timestamp_list(seq_dir / "rgb.txt")
+    if not names:
+        raise FormatError(seq_dir / "rgb.txt", "no images listed")
+    image = cv2.imread(str(seq_dir / names[0]), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FormatError(seq_dir / names[0], "cannot read the image")
+    return int(image.shape[1]), int(image.shape[0])

@@ -1,0 +1,159 @@
+"""perception.simulation.corridor: determinism, geometry, noise model, files and CLI."""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from perception.errors import PerceptionError
+from perception.rgbd import TumRgbdSequence, read_camera_file
+from perception.simulation.corridor import (
+    CorridorConfig,
+    build_corridor_scene,
+    corridor_trajectory,
+    forward_vanishing_point,
+    read_vps_file,
+    render_frame,
+    simulate_corridor,
+)
+
+# 1 m of walk: 5 frames; short enough that the end wall is within the 8 m depth range
+SHORT = CorridorConfig(seed=3, length=3.5, clutter=1)
+
+
+@pytest.fixture(scope="module")
+def short_scene():
+    return build_corridor_scene(SHORT)
+
+
+def _files(root):
+    return {p.relative_to(root): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_same_seed_gives_identical_files_and_other_seed_differs(tmp_path):
+    assert simulate_corridor(tmp_path / "a", SHORT) == 5
+    simulate_corridor(tmp_path / "b", SHORT)
+    first, second = _files(tmp_path / "a"), _files(tmp_path / "b")
+    assert first.keys() == second.keys() and len(first) == 2 * 5 + 5
+    assert first == second
+    simulate_corridor(tmp_path / "c", CorridorConfig(seed=4, length=3.5, clutter=1))
+    other = _files(tmp_path / "c")
+    assert other.keys() == first.keys()
+    assert other[next(k for k in first if k.parts[0] == "rgb")] != \
+        first[next(k for k in first if k.parts[0] == "rgb")]
+
+
+def test_written_sequence_reads_back(tmp_path):
+    simulate_corridor(tmp_path, SHORT)
+    sequence = TumRgbdSequence(tmp_path)
+    assert sequence.intrinsics == SHORT.intrinsics == read_camera_file(tmp_path / "camera.txt")
+    stamps, poses = corridor_trajectory(SHORT)
+    np.testing.assert_allclose(sequence.timestamps, stamps)
+    scene = build_corridor_scene(SHORT)
+    rng = np.random.default_rng([SHORT.seed, 2])   # the writer's generator
+    for frame, pose in zip(sequence, poses):
+        assert frame.T_world_camera_gt.equals(pose, 1e-8)
+        rgb, depth = render_frame(scene, pose, SHORT.intrinsics, rng)
+        np.testing.assert_array_equal(frame.rgb, rgb)
+        np.testing.assert_array_equal(frame.depth_m, depth)   # PNG step = render quantisation
+    vp_stamps, uv, directions = read_vps_file(tmp_path / "vps.txt")
+    np.testing.assert_allclose(vp_stamps, stamps)
+    for k, pose in enumerate(poses):
+        world_x = pose.rotation().rotate(directions[k])
+        np.testing.assert_allclose(world_x, [1, 0, 0], atol=1e-9)
+        projected = SHORT.intrinsics.K @ directions[k]
+        np.testing.assert_allclose(uv[k], projected[:2] / projected[2], atol=1e-5)
+
+
+def test_trajectory_walks_along_x_looking_forward():
+    config = CorridorConfig()
+    stamps, poses = corridor_trajectory(config)
+    np.testing.assert_allclose(np.diff(stamps), 0.3)
+    xs = np.array([p.x() for p in poses])
+    np.testing.assert_allclose(np.diff(xs), 0.8 * 0.3)
+    ys = np.array([p.y() for p in poses])
+    assert 0 < np.abs(ys).max() <= config.zigzag_amplitude + 1e-12
+    for pose in poses:
+        R = pose.rotation().matrix()
+        # camera z roughly world +x, camera x roughly world -y, camera y roughly world -z
+        assert R[:, 2] @ [1, 0, 0] > np.cos(np.deg2rad(5))
+        assert R[:, 0] @ [0, -1, 0] > np.cos(np.deg2rad(5))
+        assert R[:, 1] @ [0, 0, -1] > np.cos(np.deg2rad(5))
+    direction, uv = forward_vanishing_point(gtsam.Pose3(gtsam.Rot3(
+        np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])), np.zeros(3)), config.intrinsics)
+    np.testing.assert_allclose(direction, [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(uv, [319.5, 239.5])
+
+
+def _analytic_box_depth(pose, u, v, intr, config):
+    """z-depth of pixel (u, v) in the empty corridor box: the nearest of its six planes."""
+    ray_camera = np.array([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy, 1.0])
+    ray_world = pose.rotation().matrix() @ ray_camera
+    origin = np.asarray(pose.translation())
+    planes = [(0, 0.0), (0, config.length), (1, -config.width / 2), (1, config.width / 2),
+              (2, 0.0), (2, config.height)]
+    ts = [(value - origin[axis]) / ray_world[axis] for axis, value in planes
+          if abs(ray_world[axis]) > 1e-12]
+    return min(t for t in ts if t > 0)  # the camera ray has unit z: t is the z-depth
+
+
+def test_noise_free_depth_matches_analytic_geometry():
+    config = CorridorConfig(seed=3, length=3.5)   # no clutter; doors stay on the walls
+    scene = build_corridor_scene(config)
+    intr = config.intrinsics
+    stamps, poses = corridor_trajectory(config)
+    for pose in (poses[0], poses[-1]):
+        rgb, depth = render_frame(scene, pose, intr, rng=None)
+        # the end wall (centre), the floor or the end wall (bottom centre rows)
+        for u, v in [(319, 239), (320, 479), (320, 400), (300, 300)]:
+            expected = _analytic_box_depth(pose, u, v, intr, config)
+            assert depth[v, u] == pytest.approx(expected, abs=1e-4)
+        assert rgb[239, 319].max() > 0
+    assert depth.dtype == np.float32 and rgb.dtype == np.uint8
+    assert depth.shape == (480, 640) and rgb.shape == (480, 640, 3)
+
+
+def test_depth_range_limits():
+    config = CorridorConfig(seed=1, length=20.0)
+    scene = build_corridor_scene(config)
+    _, poses = corridor_trajectory(config)
+    _, depth = render_frame(scene, poses[0], config.intrinsics, rng=None)
+    assert depth[239, 319] == 0.0            # end wall 19.5 m away: beyond the Xtion's 8 m
+    assert depth.max() <= config.max_depth
+    assert depth[depth > 0].min() >= config.min_depth
+
+
+def test_depth_noise_follows_the_xtion_model(short_scene):
+    intr = SHORT.intrinsics
+    _, poses = corridor_trajectory(SHORT)
+    _, exact = render_frame(short_scene, poses[0], intr, rng=None)
+    _, noisy = render_frame(short_scene, poses[0], intr, rng=np.random.default_rng(7))
+    both = (exact > 0) & (noisy > 0)
+    normalised = (noisy[both] - exact[both]) / exact[both] ** 2
+    # sigma = 1.5e-3 z^2; quantisation (0.2 mm) adds little at these depths
+    assert np.std(normalised) == pytest.approx(SHORT.depth_noise, rel=0.1)
+    assert abs(np.mean(normalised)) < 1e-4
+    dropped = np.mean((exact > 0) & (noisy == 0))
+    assert 0.5 * SHORT.dropout < dropped < 0.1    # random dropouts + grazing angles
+    np.testing.assert_allclose(np.rint(noisy * 5000.0), noisy * 5000.0, atol=1e-3)  # 0.2 mm
+
+
+def test_config_errors():
+    with pytest.raises(PerceptionError, match="too short"):
+        corridor_trajectory(CorridorConfig(length=2.0))
+    with pytest.raises(PerceptionError, match="positive"):
+        build_corridor_scene(CorridorConfig(width=0.0))
+    with pytest.raises(PerceptionError, match="camera_height"):
+        corridor_trajectory(CorridorConfig(camera_height=3.0))
+
+
+def test_cli_writes_a_sequence(tmp_path, capsys):
+    from pipelines.cli import main
+
+    out = tmp_path / "seq"
+    assert main(["simulate", "corridor", str(out), "--seed", "2", "--length", "3.5",
+                 "--clutter", "2", "--quiet"]) == 0
+    assert "5 frames" in capsys.readouterr().out
+    assert len(TumRgbdSequence(out)) == 5
+    assert main(["simulate", "corridor", str(out), "--width", "0", "--quiet"]) == 2
+    assert "positive" in capsys.readouterr().err

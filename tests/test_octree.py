@@ -1,0 +1,370 @@
+"""mapping.OcTree against liboctomap (octomap-python wheel and Debian graph2tree).
+
+Equality is checked on whole .ot files: the .ot payload holds every node's float32 log-odds in
+liboctomap's pre-order, so byte equality means the same nodes, leaves and values.
+"""
+from __future__ import annotations
+
+import bz2
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import octomap
+from mapping import OcTree, fuse, logodds
+from mapping.octree import probability
+
+pytestmark = pytest.mark.reference
+
+
+# --------------------------------------------------------------------------- fixtures
+
+
+@pytest.fixture(scope="session")
+def scan_points(shared_data) -> np.ndarray:
+    """scan.dat as float32 (OctoMap reads it as floats)."""
+    text = bz2.decompress((shared_data / "octomap" / "scan.dat.bz2").read_bytes())
+    return np.loadtxt(text.decode().splitlines(), dtype=np.float64).astype(np.float32)
+
+
+@pytest.fixture(scope="session")
+def scan_graph(shared_data, tmp_path_factory) -> Path:
+    """scan.dat as a one-node .graph at the origin (log2graph, as the data README says)."""
+    d = tmp_path_factory.mktemp("scangraph")
+    log = d / "scan.log"
+    text = bz2.decompress((shared_data / "octomap" / "scan.dat.bz2").read_bytes())
+    log.write_bytes(b"NODE 0 0 0 0 0 0\n" + text)
+    subprocess.run(["log2graph", str(log), str(d / "scan.graph")], check=True,
+                   capture_output=True)
+    return d / "scan.graph"
+
+
+_G2T_CACHE: dict = {}
+
+
+@pytest.fixture(scope="session")
+def graph2tree(tmp_path_factory):
+    """graph2tree outputs (bt bytes, ot bytes) for (graph, res, max_range), cached."""
+    out_dir = tmp_path_factory.mktemp("graph2tree")
+
+    def run(graph: Path, res: float, max_range: float = -1.0) -> tuple[bytes, bytes]:
+        key = (str(graph), res, max_range)
+        if key not in _G2T_CACHE:
+            out = out_dir / f"{Path(graph).stem}_{res}_{max_range}.bt"
+            cmd = ["graph2tree", "-i", str(graph), "-o", str(out), "-res", str(res)]
+            if max_range >= 0:
+                cmd += ["-m", str(max_range)]
+            subprocess.run(cmd, check=True, capture_output=True)
+            _G2T_CACHE[key] = (out.read_bytes(), Path(str(out) + ".ot").read_bytes())
+        return _G2T_CACHE[key]
+
+    return run
+
+
+def _octomap_scan(points: np.ndarray, res: float, max_range: float, discretize=False):
+    ref = octomap.OcTree(res)
+    ref.insertPointCloud(points.astype(np.float64), np.zeros(3), maxrange=max_range,
+                         discretize=discretize)
+    return ref
+
+
+def _k3(key) -> tuple[int, int, int]:
+    # OcTreeKey has __getitem__ without bounds: never iterate it (it would run off the end)
+    return int(key[0]), int(key[1]), int(key[2])
+
+
+# --------------------------------------------------------------------------- defaults, keys
+
+
+def test_default_parameters_are_liboctomaps_float32_values():
+    tree = OcTree(0.1)
+    ref = octomap.OcTree(0.1)
+    assert tree.prob_hit_log == np.float32(ref.getProbHitLog())
+    assert tree.prob_miss_log == np.float32(ref.getProbMissLog())
+    assert tree.clamp_min_log == np.float32(ref.getClampingThresMinLog())
+    assert tree.clamp_max_log == np.float32(ref.getClampingThresMaxLog())
+    assert tree.occupancy_thres_log == np.float32(0.0)
+    # hex values of OCTOMAP.md section 4
+    assert float(tree.prob_hit_log) == float.fromhex("0x1.b1d106p-1")
+    assert float(tree.prob_miss_log) == float.fromhex("-0x1.9f323ep-2")
+    assert float(tree.clamp_min_log) == float.fromhex("-0x1.0000eap+1")
+    assert float(tree.clamp_max_log) == float.fromhex("0x1.c16974p+1")
+    assert logodds(0.5) == 0.0
+    assert probability(0.0) == 0.5
+
+
+def test_keys_match_liboctomap(rng):
+    tree = OcTree(0.05)
+    ref = octomap.OcTree(0.05)
+    pts = rng.uniform(-50, 50, size=(200, 3)).astype(np.float32)
+    pts[:5] = [[0, 0, 0], [0.05, -0.05, 0.025], [-1e-7, 1e-7, 0.1], [1638.35, -1638.4, 3], [0, 0, 0]]
+    keys = tree.coord_to_key(pts)
+    back = tree.key_to_coord(keys)
+    for p, k, c in zip(pts, keys, back, strict=True):
+        rk = ref.coordToKey(p.astype(np.float64))
+        assert _k3(rk) == tuple(int(v) for v in k)
+        assert np.allclose(ref.keyToCoord(rk), c)
+    # out of the map: checked keys fail
+    _, valid = tree.coord_to_key_checked([[1e6, 0, 0], [np.nan, 0, 0], [1, 2, 3]])
+    assert valid.tolist() == [False, False, True]
+
+
+def test_adjust_key_and_key_to_coord_at_depth():
+    tree = OcTree(0.1)
+    keys = np.array([[32768, 32767, 40000]])
+    for depth in (1, 5, 12, 15, 16):
+        adj = tree.adjust_key_at_depth(keys, depth)
+        diff = 16 - depth
+        expect = ((((keys - 32768) >> diff) << diff) + ((1 << (diff - 1)) if diff else 0)
+                  + 32768)
+        assert (adj == expect).all()
+        c = tree.key_to_coord(keys, depth)
+        size = tree.node_size(depth)
+        assert np.allclose(c, (np.floor((keys - 32768) / 2 ** diff) + 0.5) * size)
+    assert (tree.key_to_coord(keys, 0) == 0).all()
+
+
+def test_compute_ray_keys_excludes_end_cell():
+    tree = OcTree(0.1)
+    keys = tree.compute_ray_keys([0.05, 0.05, 0.05], [0.55, 0.05, 0.05])
+    assert keys[:, 0].tolist() == [32768, 32769, 32770, 32771, 32772]
+    assert (keys[:, 1:] == 32768).all()
+    assert len(tree.compute_ray_keys([0.01, 0.01, 0.01], [0.02, 0.03, 0.04])) == 0
+
+
+def test_ray_keys_equal_single_point_insert_free_cells(rng):
+    """A one-point scan: free cells = ray keys (checked against liboctomap's tree)."""
+    res = 0.1
+    for _ in range(20):
+        o = rng.uniform(-2, 2, 3).astype(np.float32)
+        e = (o + rng.normal(size=3) * 3).astype(np.float32)
+        keys = OcTree(res).compute_ray_keys(o, e)
+        ref = octomap.OcTree(res)
+        ref.insertPointCloud(e[None].astype(np.float64), o.astype(np.float64))
+        free = {_k3(lf.getKey()) for lf in ref.begin_leafs()
+                if lf.getValue() < 0}
+        ekey = tuple(int(v) for v in OcTree(res).coord_to_key(e)[0])
+        assert free == {tuple(int(v) for v in k) for k in keys} - {ekey}
+
+
+# --------------------------------------------------------------------------- whole maps
+
+
+@pytest.mark.parametrize("res,nodes,leaves,bt_len,ot_len,mem", [
+    (0.1, 6296, 4926, 2879, 31612, 188736),
+    (0.05, 23923, 18970, 10047, 119749, 700080),
+])
+def test_spherical_scan_golden_and_graph2tree_bytes(shared_data, graph2tree, res, nodes, leaves,
+                                                    bt_len, ot_len, mem):
+    from estimation.io import read_scan_graph
+
+    path = shared_data / "octomap" / "spherical_scan.graph"
+    tree = fuse(read_scan_graph(path), res)
+    assert tree.size() == nodes
+    assert tree.num_leaf_nodes() == leaves
+    assert tree.memory_usage() == mem
+    ref_bt, ref_ot = graph2tree(path, res)
+    ot = tree.to_bytes_ot()
+    assert len(ot) == ot_len and ot == ref_ot
+    tree.to_max_likelihood()
+    tree.prune()
+    bt = tree.to_bytes_bt()
+    assert len(bt) == bt_len and bt == ref_bt
+
+
+@pytest.mark.parametrize("res,max_range,nodes,leaves,bt_len,ot_len,mem", [
+    (0.1, -1.0, 407411, 327452, 160059, 2037189, 11636272),
+    (0.1, 10.0, 66581, 53254, 26794, 333038, 1918544),
+    pytest.param(0.05, 10.0, 1054412, 872609, 363749, 5272196, 28506304,
+                 marks=pytest.mark.slow),
+])
+def test_scan_dat_golden_and_liboctomap_equal(scan_points, scan_graph, graph2tree, res,
+                                              max_range, nodes, leaves, bt_len, ot_len, mem):
+    tree = OcTree(res)
+    tree.insert_point_cloud(scan_points, np.zeros(3), max_range=max_range)
+    assert (tree.size(), tree.num_leaf_nodes(), tree.memory_usage()) == (nodes, leaves, mem)
+    ref_bt, ref_ot = graph2tree(scan_graph, res, max_range)
+    ot = tree.to_bytes_ot()
+    assert len(ot) == ot_len and ot == ref_ot
+    tree.to_max_likelihood()
+    tree.prune()
+    bt = tree.to_bytes_bt()
+    assert len(bt) == bt_len and bt == ref_bt
+
+
+@pytest.mark.slow
+def test_scan_dat_005_no_max_range_equals_octomap_python(scan_points):
+    tree = OcTree(0.05)
+    tree.insert_point_cloud(scan_points, np.zeros(3))
+    ref = _octomap_scan(scan_points, 0.05, -1.0)
+    assert tree.size() == ref.size()
+    assert tree.to_bytes_ot() == ref.write()
+
+
+@pytest.mark.parametrize("max_range", [-1.0, 3.0])
+def test_discretize_and_moving_origin_equal_octomap_python(scan_points, max_range):
+    pts = scan_points[::7]
+    ref = octomap.OcTree(0.2)
+    tree = OcTree(0.2)
+    for k, origin in enumerate([(0.0, 0.0, 0.0), (0.33, -0.71, 0.2), (1.05, 0.4, -0.3)]):
+        o = np.array(origin)
+        ref.insertPointCloud(pts.astype(np.float64) + o, o, maxrange=max_range,
+                             discretize=bool(k % 2))
+        tree.insert_point_cloud((pts.astype(np.float64) + o).astype(np.float32), o,
+                                max_range=max_range, discretize=bool(k % 2))
+    assert tree.to_bytes_ot() == ref.write()
+
+
+def test_several_scans_prune_and_expand_like_liboctomap(scan_points):
+    """Many scans from one place: clamping makes 8 equal leaves collapse; later scans expand."""
+    pts = scan_points[::3] * np.float32(0.2)
+    ref = octomap.OcTree(0.1)
+    tree = OcTree(0.1)
+    rng = np.random.default_rng(3)
+    for _ in range(8):
+        o = rng.uniform(-0.3, 0.3, 3)
+        sub = pts[rng.choice(len(pts), len(pts) // 2, replace=False)].astype(np.float64) + o
+        ref.insertPointCloud(sub, o, maxrange=4.0)
+        tree.insert_point_cloud(sub.astype(np.float32), o, max_range=4.0)
+        assert tree.size() == ref.size()
+    assert tree.to_bytes_ot() == ref.write()
+    assert tree.memory_usage() == ref.memoryUsage()
+    before = tree.to_bytes_ot()
+    n_leaves = tree.leaves()
+    tree.expand()
+    assert tree.num_leaf_nodes() == int((8 ** (16 - n_leaves.depths.astype(np.int64))).sum())
+    assert (tree.leaves().depths == 16).all()
+    tree.prune()
+    assert tree.to_bytes_ot() == before
+
+
+cells = st.tuples(st.integers(0, 3), st.integers(0, 3), st.integers(0, 1))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(cells, st.sampled_from([True, False, 0.3, -1.7, 0.0])),
+                min_size=1, max_size=120))
+def test_update_node_sequence_equals_liboctomap(ops):
+    """Per-call updateNode incl. early exit at the clamps, pruning and expansion."""
+    ref = octomap.OcTree(0.5)
+    tree = OcTree(0.5)
+    for (i, j, k), upd in ops:
+        p = np.array([i * 0.5 + 0.25, j * 0.5 + 0.25, k * 0.5 + 0.25])
+        ref.updateNode(p, upd if isinstance(upd, bool) else float(upd))
+        tree.update_node(p[None], upd)
+    assert tree.size() == ref.size()
+    assert tree.to_bytes_ot() == ref.write()
+
+
+def test_lazy_eval_and_update_inner_occupancy(scan_points):
+    pts = scan_points[::11].astype(np.float64)
+    ref = octomap.OcTree(0.2)
+    ref.insertPointCloud(pts, np.zeros(3), lazy_eval=True)
+    tree = OcTree(0.2)
+    tree.insert_point_cloud(pts, np.zeros(3), lazy_eval=True)
+    assert tree.to_bytes_ot() == ref.write()
+    ref.updateInnerOccupancy()
+    tree.update_inner_occupancy()
+    assert tree.to_bytes_ot() == ref.write()
+
+
+def test_nonfinite_and_out_of_map_points_are_skipped_and_counted(scan_points):
+    pts = scan_points[:2000].copy()
+    bad = pts.copy()
+    bad[::10] = np.nan
+    bad[5] = [np.inf, 0, 0]
+    bad[7] = [1e7, 0, 0]
+    clean_idx = np.ones(len(bad), bool)
+    clean_idx[::10] = False
+    clean_idx[[5, 7]] = False
+    tree = OcTree(0.1)
+    with pytest.warns(RuntimeWarning, match="skipped"):
+        stats = tree.insert_point_cloud(bad, np.zeros(3))
+    assert stats.n_nonfinite == 201 and stats.n_out_of_bounds == 1
+    clean = OcTree(0.1)
+    clean.insert_point_cloud(pts[clean_idx], np.zeros(3))
+    assert tree.to_bytes_ot() == clean.to_bytes_ot()
+
+
+# --------------------------------------------------------------------------- queries
+
+
+@pytest.fixture(scope="module")
+def sphere_pair(shared_data):
+    from estimation.io import read_scan_graph
+
+    g = read_scan_graph(shared_data / "octomap" / "spherical_scan.graph")
+    tree = fuse(g, 0.1)
+    ref = octomap.OcTree.read(tree.to_bytes_ot())
+    return tree, ref
+
+
+def test_search_at_every_depth_matches_liboctomap(sphere_pair, rng):
+    tree, ref = sphere_pair
+    pts = rng.uniform(-6, 6, size=(300, 3))
+    for depth in (0, 16, 14, 10, 3):
+        res = tree.search(pts, depth=depth)
+        for p, known, lo in zip(pts, res.known, res.log_odds, strict=True):
+            try:
+                node = ref.search(p, depth=depth)
+                v = node.getValue()
+            except octomap.NullPointerException:
+                v = None
+            if v is None:
+                assert not known
+            else:
+                assert known and np.float32(v) == lo
+
+
+def test_cast_ray_matches_liboctomap(sphere_pair, rng):
+    tree, ref = sphere_pair
+    origins = rng.uniform(-1, 2, size=(150, 3))
+    dirs = rng.normal(size=(150, 3))
+    dirs[0] = [0, 0, 0]
+    for ignore, max_range in [(False, -1.0), (True, -1.0), (True, 2.0)]:
+        res = tree.cast_ray(origins, dirs, ignore_unknown=ignore, max_range=max_range)
+        for i in range(len(origins)):
+            end = np.full(3, 123.0)
+            hit = ref.castRay(origins[i], dirs[i], end, ignore, max_range)
+            assert bool(hit) == bool(res.hit[i])
+            if res.valid[i]:
+                assert np.allclose(np.float32(end), res.ends[i])
+            else:
+                assert not hit
+
+
+def test_leaves_arrays_match_leaf_iterator(sphere_pair):
+    tree, ref = sphere_pair
+    lv = tree.leaves()
+    # the binding's iterator object is reused: read each leaf while iterating
+    it = [(_k3(n.getKey()), n.getDepth(), n.getValue(), tuple(n.getCoordinate()), n.getSize())
+          for n in ref.begin_leafs()]
+    assert len(lv) == len(it) == tree.num_leaf_nodes()
+    for i in range(len(it)):
+        key, depth, value, coord, size = it[i]
+        assert key == tuple(int(v) for v in lv.keys[i])
+        assert depth == lv.depths[i]
+        assert np.float32(value) == lv.log_odds[i]
+        assert np.allclose(coord, lv.centers[i], atol=1e-6)
+        assert np.isclose(size, lv.sizes[i])
+    lo, hi = tree.metric_bounds()
+    assert np.allclose(lo, ref.getMetricMin()) and np.allclose(hi, ref.getMetricMax())
+    assert np.isclose(tree.volume(), ref.volume())
+    # bbox: every returned leaf intersects the box, and leaves fully inside are all there
+    box = tree.leaves(bbox_min=[-1, -1, -1], bbox_max=[1.5, 0.5, 0.2])
+    ref_box = [_k3(n.getKey()) for n in
+               ref.begin_leafs_bbx(np.array([-1., -1, -1]), np.array([1.5, 0.5, 0.2]))]
+    assert ref_box == [tuple(int(v) for v in k) for k in box.keys]
+
+
+def test_probability_helpers(sphere_pair):
+    tree, _ = sphere_pair
+    lv = tree.leaves()
+    assert (tree.is_occupied(lv.log_odds) == (lv.log_odds >= 0)).all()
+    at = tree.is_at_threshold(np.array([3.6, 3.51103067, 0.0, -2.1], np.float32))
+    assert at.tolist() == [True, True, False, True]
+    assert np.allclose(probability(lv.log_odds), 1 - 1 / (1 + np.exp(lv.log_odds)))

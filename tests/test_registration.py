@@ -1,0 +1,270 @@
+"""GICP-SE(3) and Semantic-ICP: Jacobians, whitening, recovery, bad input, PoseGraph use."""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from estimation.errors import EstimationError
+from estimation.registration import (
+    UNCONSTRAINED_VARIANCE,
+    BatchedGicpFactor,
+    Registration,
+    RegistrationConfig,
+    gicp_terms,
+    point_covariances,
+    pose_error,
+    register,
+    semantic_icp,
+    whitening,
+)
+from estimation.registration.factors import cauchy_loss, cauchy_weight, solve_weighted
+
+
+def corner_scene(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a floor, two walls and a box, with a class per surface (4 classes)."""
+    k = n // 4
+    floor = np.c_[rng.uniform(0, 4, k), rng.uniform(0, 4, k), np.zeros(k)]
+    wall_x = np.c_[np.zeros(k), rng.uniform(0, 4, k), rng.uniform(0, 2.5, k)]
+    wall_y = np.c_[rng.uniform(0, 4, k), np.zeros(k), rng.uniform(0, 2.5, k)]
+    u = rng.uniform(0, 1, (k, 3))
+    face = rng.integers(0, 3, k)
+    u[np.arange(k), face] = rng.integers(0, 2, k)
+    box = u * [1.0, 0.6, 0.8] + [2.0, 2.0, 0.0]
+    labels = np.repeat([0, 1, 1, 2], k)
+    labels[3 * k:][box[:, 2] < 1e-9] = 0  # the box's bottom face lies on the floor
+    return np.vstack([floor, wall_x, wall_y, box]), labels
+
+
+def random_pose(rng, sigma_rot=0.05, sigma_t=0.1) -> np.ndarray:
+    return gtsam.Pose3(gtsam.Rot3.Expmap(rng.normal(0, sigma_rot, 3)),
+                       rng.normal(0, sigma_t, 3)).matrix()
+
+
+def make_pair(seed: int, n: int = 2000, sigma: float = 0.005):
+    rng = np.random.default_rng(seed)
+    target, labels_t = corner_scene(rng, n)
+    target = target + rng.normal(0, sigma, target.shape)
+    T_gt = random_pose(rng)
+    source_world, labels_s = corner_scene(rng, n)
+    source_world = source_world + rng.normal(0, sigma, source_world.shape)
+    source = (source_world - T_gt[:3, 3]) @ T_gt[:3, :3]
+    return source, labels_s, target, labels_t, T_gt
+
+
+def one_hot(labels, c=4, acc=1.0):
+    probs = np.full((len(labels), c), (1 - acc) / (c - 1))
+    probs[np.arange(len(labels)), labels] = acc
+    return probs
+
+
+# -- building blocks -------------------------------------------------------------------------
+def test_jacobians_match_numerical_derivatives(rng):
+    m = 7
+    source = rng.normal(size=(m, 3))
+    target = rng.normal(size=(m, 3))
+    covs = np.array([point_covariances(rng.normal(size=(30, 3)) * [1, 1, 0.01], 10)[0]
+                     for _ in range(2 * m)])
+    T = random_pose(rng, 0.5, 1.0)
+    Ut = whitening(covs[:m], covs[m:], T[:3, :3])
+    terms = gicp_terms(T, source, target, Ut)
+    h = 1e-6
+    numerical = np.zeros((m, 3, 6))
+    pose = gtsam.Pose3(T)
+    for i in range(6):
+        d = np.zeros(6)
+        d[i] = h
+        plus = gicp_terms(pose.retract(d).matrix(), source, target, Ut, jacobians=False)
+        minus = gicp_terms(pose.retract(-d).matrix(), source, target, Ut, jacobians=False)
+        numerical[:, :, i] = (plus.residuals - minus.residuals) / (2 * h)
+    np.testing.assert_allclose(terms.jacobians, numerical, atol=1e-6, rtol=1e-5)
+
+
+def test_whitening_is_cholesky_of_information(rng):
+    A = rng.normal(size=(50, 3, 3))
+    cov_t = A @ np.swapaxes(A, 1, 2) + 0.1 * np.eye(3)
+    B = rng.normal(size=(50, 3, 3))
+    cov_s = B @ np.swapaxes(B, 1, 2) + 0.1 * np.eye(3)
+    R = gtsam.Rot3.Expmap(rng.normal(size=3)).matrix()
+    Ut = whitening(cov_t, cov_s, R)
+    info = np.linalg.inv(cov_t + R @ cov_s @ R.T)
+    np.testing.assert_allclose(np.swapaxes(Ut, 1, 2) @ Ut, info, rtol=1e-8, atol=1e-10)
+    assert np.allclose(np.tril(Ut, -1), 0)  # U^T is upper triangular
+
+
+def test_point_covariances_are_plane_like(rng):
+    plane = np.c_[rng.uniform(0, 1, (400, 2)), np.zeros(400)]
+    covs = point_covariances(plane, k=15, epsilon=1e-3)
+    eig = np.linalg.eigvalsh(covs)
+    np.testing.assert_allclose(eig, np.broadcast_to([1e-3, 1, 1], eig.shape), atol=1e-9)
+    normals = np.linalg.eigh(covs)[1][:, :, 0]
+    np.testing.assert_allclose(np.abs(normals[:, 2]), 1.0, atol=1e-9)
+
+
+def test_cauchy_weight_is_derivative_of_loss():
+    e = np.linspace(0, 50, 11)
+    h = 1e-6
+    numeric = (cauchy_loss(e + h, 2.0) - cauchy_loss(e - np.minimum(h, e), 2.0)) / \
+        (h + np.minimum(h, e))
+    np.testing.assert_allclose(cauchy_weight(e, 2.0), numeric, rtol=1e-5)
+
+
+def test_batched_factor_linearises_to_stacked_terms(rng):
+    source, _, target, _, T_gt = make_pair(3, 400)
+    reg = Registration(source, target, RegistrationConfig())
+    corr = reg.correspondences(T_gt, 0.3)
+    src, tgt = source[corr.source_idx], target[corr.target_idx]
+    Ut = whitening(reg.target_cov[corr.target_idx], reg.source_cov[corr.source_idx],
+                   T_gt[:3, :3])
+    weights = rng.uniform(0.2, 1.0, len(src))
+    factor = BatchedGicpFactor(gtsam.symbol("t", 0), src, tgt, Ut, weights)
+    values = gtsam.Values()
+    values.insert(factor.key, gtsam.Pose3(T_gt))
+    terms = gicp_terms(T_gt, src, tgt, Ut)
+    expected = 0.5 * np.sum(weights * terms.mahalanobis)
+    assert factor.factor.error(values) == pytest.approx(expected, rel=1e-9)
+    jac = factor.factor.linearize(values)
+    A, b = jac.jacobian()
+    # GTSAM stores -residual as b; compare A^T A with the weighted Gauss-Newton information
+    H = np.einsum("m,mji,mjk->ik", weights, terms.jacobians, terms.jacobians)
+    np.testing.assert_allclose(A.T @ A, H, rtol=1e-8, atol=1e-8)
+    # one GTSAM Gauss-Newton step from a perturbed pose lowers the weighted cost
+    start = T_gt @ random_pose(rng, 0.01, 0.02)
+    values.update(factor.key, gtsam.Pose3(start))
+    before = factor.factor.error(values)
+    values.update(factor.key, gtsam.Pose3(solve_weighted(start, factor, "gn", 1)))
+    assert factor.factor.error(values) < before
+
+
+# -- recovery ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("optimizer", ["gn", "lm"])
+def test_gicp_recovers_transform(optimizer):
+    source, _, target, _, T_gt = make_pair(1)
+    result = register(source, target, config=RegistrationConfig(optimizer=optimizer))
+    err = pose_error(result.T, T_gt)
+    assert result.converged, result.reason
+    assert err.t_err_m < 5e-3 and err.r_err_rad < 2e-3
+    assert result.inliers > 0.8 * len(source) and 0 < result.fitness <= 1
+    assert result.cost_log[-1] < result.cost_log[0]
+    assert result.method == "gicp" and result.iterations == len(result.cost_log)
+
+
+@pytest.mark.reference
+def test_gicp_agrees_with_open3d():
+    import open3d as o3d
+
+    source, _, target, _, T_gt = make_pair(2)
+    ours = register(source, target, config=RegistrationConfig(max_correspondence_distance=0.3))
+    reg = o3d.pipelines.registration
+    theirs = reg.registration_generalized_icp(
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source)),
+        o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target)), 0.3, np.eye(4),
+        reg.TransformationEstimationForGeneralizedICP(reg.CauchyLoss(1.0)),
+        reg.ICPConvergenceCriteria(1e-8, 1e-8, 60))
+    assert pose_error(ours.T, theirs.transformation).d_se3 < 2e-3
+    assert pose_error(ours.T, T_gt).d_se3 <= pose_error(theirs.transformation, T_gt).d_se3 + 1e-3
+
+
+@pytest.mark.parametrize("semantic_weight", ["inside", "outside"])
+def test_semantic_icp_recovers_transform(semantic_weight):
+    source, labels_s, target, labels_t, T_gt = make_pair(4)
+    result = semantic_icp(source, one_hot(labels_s, acc=0.9), target, one_hot(labels_t, acc=0.9),
+                          semantic_weight=semantic_weight)
+    assert result.converged, result.reason
+    assert result.method == "semantic"
+    err = pose_error(result.T, T_gt)
+    assert err.t_err_m < 5e-3 and err.r_err_rad < 2e-3
+
+
+@pytest.mark.parametrize("yaw_deg,shift", [(20, (1.5, 1.0, 0.0)), (45, (-1.0, 1.0, 0.3))])
+def test_semantic_labels_widen_the_basin(yaw_deg, shift):
+    # the box is the only structure that fixes the in-plane position; from these offsets
+    # plain GICP locks the box onto the walls, while the box label pulls it home
+    source, labels_s, target, labels_t, T_gt = make_pair(5, 4000)
+    centre = np.eye(4)
+    centre[:3, 3] = source.mean(axis=0)
+    offset = gtsam.Pose3(gtsam.Rot3.Yaw(np.deg2rad(yaw_deg)), np.array(shift)).matrix()
+    init = T_gt @ centre @ offset @ np.linalg.inv(centre)
+    cfg = RegistrationConfig(max_correspondence_distance=0.2, initial_correspondence_distance=1.5)
+    geometric = register(source, target, init, cfg)
+    assert pose_error(geometric.T, T_gt).t_err_m > 0.2
+    sem = semantic_icp(source, one_hot(labels_s, acc=0.9), target, one_hot(labels_t, acc=0.9),
+                       init=init, config=cfg)
+    err = pose_error(sem.T, T_gt)
+    assert sem.converged, sem.reason
+    assert err.t_err_m < 0.01 and err.r_err_rad < 0.005
+
+
+# -- bad input: never a silent identity -------------------------------------------------------
+def test_empty_and_tiny_clouds_fail_with_reason():
+    target = np.random.default_rng(0).normal(size=(100, 3))
+    for source in (np.zeros((0, 3)), np.ones((3, 3))):
+        result = register(source, target)
+        assert not result.converged and "too few points" in result.reason
+        assert np.all(np.diag(result.covariance) >= UNCONSTRAINED_VARIANCE)
+
+
+def test_no_correspondence_within_dmax():
+    source, _, target, _, _ = make_pair(6, 400)
+    far = np.eye(4)
+    far[:3, 3] = [50.0, 0, 0]
+    result = register(source, target, init=far)
+    assert not result.converged and "correspondences" in result.reason
+    np.testing.assert_array_equal(result.T, far)  # returned as given, flagged as failed
+
+
+def test_single_plane_is_degenerate(rng):
+    plane = np.c_[rng.uniform(0, 3, (1500, 2)), np.zeros(1500)]
+    target = plane + rng.normal(0, 0.002, plane.shape)
+    source = plane[::-1] + rng.normal(0, 0.002, plane.shape) + [0.02, 0.01, 0.01]
+    result = register(source, target)
+    assert not result.converged and "degenerate" in result.reason
+    assert "3 unconstrained" in result.reason
+    # the unconstrained directions are yaw, x and y: huge variance there, small for z
+    variances = np.diag(result.covariance)
+    assert variances[2] > 1e3 and variances[3] > 1e3 and variances[4] > 1e3
+    # (normal noise tilts the null space a little, so some of the huge variance leaks in)
+    assert variances[5] < 0.05 and variances[0] < 0.05 and variances[1] < 0.05
+
+
+def test_single_label_everywhere_still_registers():
+    source, labels_s, target, labels_t, T_gt = make_pair(7)
+    probs_s = np.ones((len(source), 1))
+    probs_t = np.ones((len(target), 1))
+    result = semantic_icp(source, probs_s, target, probs_t)
+    assert result.converged, result.reason
+    assert pose_error(result.T, T_gt).t_err_m < 5e-3
+
+
+def test_invalid_input_raises():
+    pts = np.zeros((20, 3))
+    with pytest.raises(EstimationError, match="NaN"):
+        register(np.full((20, 3), np.nan), pts)
+    with pytest.raises(EstimationError, match=r"\(N, 3\)"):
+        register(np.zeros((20, 2)), pts)
+    with pytest.raises(EstimationError, match="classes"):
+        Registration(pts, pts, None, np.ones((20, 2)), np.ones((20, 3)))
+    with pytest.raises(EstimationError, match="both clouds"):
+        Registration(pts, pts, None, np.ones((20, 2)), None)
+    with pytest.raises(EstimationError, match="semantic_weight"):
+        RegistrationConfig(semantic_weight="middle")
+    with pytest.raises(EstimationError, match="4x4"):
+        register(pts, pts, init=np.eye(3))
+
+
+# -- the PoseGraph ----------------------------------------------------------------------------
+def test_result_adds_a_between_factor():
+    from estimation.pose_graph import PoseGraph
+
+    source, _, target, _, T_gt = make_pair(8)
+    result = register(source, target)
+    pg = PoseGraph()
+    pg.add_node(0, gtsam.Pose3())
+    pg.add_node(1, gtsam.Pose3())
+    pg.add_prior(0, gtsam.Pose3(), np.eye(6) * 1e-8)
+    result.add_to_pose_graph(pg, 0, 1, kind="calibration")
+    pg.optimize()
+    assert pose_error(pg.nodes[1].pose, T_gt).d_se3 < 1e-2
+    failed = register(source[:3], target)
+    with pytest.raises(EstimationError, match="did not converge"):
+        failed.add_to_pose_graph(pg, 0, 1)

@@ -1,0 +1,126 @@
+"""The vpslam pipeline end to end on a small simulated corridor (320x240, 11 frames)."""
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from pipelines.cli import main
+
+REPORT_KEYS = {"frames", "vp_detections", "vp_updates", "vp_gated", "ate_rmse_m",
+               "final_drift_xyz_m", "ms_per_frame_median", "map_ms_per_frame_median",
+               "vo_ms_per_frame_median", "total_ms_per_frame_median", "skipped_updates"}
+
+
+@pytest.fixture(scope="module")
+def corridor(tmp_path_factory):
+    from perception.rgbd import CameraIntrinsics
+    from perception.simulation.corridor import CorridorConfig, simulate_corridor
+
+    out = tmp_path_factory.mktemp("corridor")
+    intr = CameraIntrinsics(262.5, 262.5, 159.5, 119.5, 320, 240, 5000.0)
+    n = simulate_corridor(out, CorridorConfig(seed=1, length=5.0, intrinsics=intr))
+    assert n == 11
+    return out
+
+
+@pytest.fixture(scope="module")
+def point_run(corridor, tmp_path_factory):
+    out = tmp_path_factory.mktemp("vpslam_point")
+    assert main(["vpslam", str(corridor), "-o", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_outputs_and_report(point_run, corridor):
+    for name in ("trajectory.txt", "map.bt", "map.ot", "graph.g2o", "trajectory.png",
+                 "report.json"):
+        assert (point_run / name).stat().st_size > 0, name
+    report = json.loads((point_run / "report.json").read_text())
+    assert REPORT_KEYS <= set(report)
+    assert report["frames"] == 11
+    assert report["vp_updates"] + report["vp_gated"] + report.get("vp_initialised", 0) \
+        + sum(v for k, v in report["skipped_updates"].items() if k.startswith("vp:")) \
+        == report["frames"]
+    assert len(report["final_drift_xyz_m"]) == 3
+    assert report["ate_rmse_m"] < 0.05  # 2.4 m of travel
+
+
+def test_trajectory_keeps_full_precision_timestamps(point_run, corridor):
+    stamps = [line.split()[0] for line in (corridor / "rgb.txt").read_text().splitlines()
+              if line and not line.startswith("#")]
+    rows = [line.split() for line in (point_run / "trajectory.txt").read_text().splitlines()
+            if line and not line.startswith("#")]
+    assert [float(r[0]) for r in rows] == [float(s) for s in stamps]
+    assert all(len(r) == 8 for r in rows)
+    gt = np.loadtxt(corridor / "groundtruth.txt")
+    # the filter starts at the ground-truth pose of the first frame
+    np.testing.assert_allclose(np.array(rows[0][1:], dtype=float), gt[0, 1:], atol=1e-9)
+
+
+def test_graph_and_map_read_back(point_run):
+    from estimation.io import read_g2o
+    from mapping import OcTree
+
+    graph = read_g2o(point_run / "graph.g2o")
+    assert len(graph.nodes) == 11
+    assert sum(1 for f in graph.factors if len(f.nodes) == 2) == 10
+    tree = OcTree.read(point_run / "map.bt")
+    assert len(tree.occupied_voxels()) > 100
+    assert tree.resolution == pytest.approx(0.05)
+
+
+def test_manhattan_model_updates(corridor, tmp_path):
+    assert main(["vpslam", str(corridor), "-o", str(tmp_path), "--quiet", "--no-map",
+                 "--vp-model", "manhattan"]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["vp_model"] == "manhattan"
+    assert report["vp_initialised"] >= 2 and report["vp_updates"] >= 5
+    assert report["ate_rmse_m"] < 0.05
+
+
+def test_missing_frame_and_failed_vo_are_counted_not_fatal(corridor, tmp_path):
+    seq = tmp_path / "seq"
+    shutil.copytree(corridor, seq)
+    rgb_names = [line.split()[1] for line in (seq / "rgb.txt").read_text().splitlines()
+                 if line and not line.startswith("#")]
+    (seq / rgb_names[4]).unlink()  # a missing image
+    depth_names = [line.split()[1] for line in (seq / "depth.txt").read_text().splitlines()
+                   if line and not line.startswith("#")]
+    import cv2
+
+    blank = np.zeros((240, 320), dtype=np.uint16)  # no depth at all: the VO must fail
+    cv2.imwrite(str(seq / depth_names[7]), blank)
+    out = tmp_path / "out"
+    assert main(["vpslam", str(seq), "-o", str(out), "--quiet", "--no-map", "--no-vp"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["frames"] == 10
+    skipped = report["skipped_updates"]
+    assert sum(v for k, v in skipped.items() if k.startswith("frame unreadable")) == 1
+    assert sum(v for k, v in skipped.items() if k.startswith("vo:")) >= 2
+    assert report["vp_updates"] == 0
+    assert report["ate_rmse_m"] < 0.5
+
+
+def test_without_groundtruth_starts_at_body_identity(corridor, tmp_path):
+    seq = tmp_path / "seq"
+    shutil.copytree(corridor, seq)
+    (seq / "groundtruth.txt").unlink()
+    out = tmp_path / "out"
+    assert main(["vpslam", str(seq), "-o", str(out), "--quiet", "--no-map",
+                 "--max-frames", "3", "--intrinsics", "262.5,262.5,159.5,119.5"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["ate_rmse_m"] is None and report["final_drift_xyz_m"] is None
+    first = np.loadtxt(out / "trajectory.txt")[0]
+    np.testing.assert_allclose(first[1:4], 0.0)
+    # camera looking along world x: R_world_camera = R_BODY_CAMERA, quaternion (x y z w)
+    np.testing.assert_allclose(np.abs(first[4:]), [0.5, 0.5, 0.5, 0.5], atol=1e-12)
+
+
+def test_bad_input_exits_2(tmp_path, capsys):
+    assert main(["vpslam", str(tmp_path / "nope"), "-o", str(tmp_path / "out"), "--quiet"]) == 2
+    assert "octofactor: error" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(["vpslam", str(tmp_path), "-o", str(tmp_path / "out"), "--intrinsics", "1,2"])
+    assert exc.value.code == 2
