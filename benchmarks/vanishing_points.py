@@ -201,6 +201,13 @@ def main(argv=None) -> int:
               f"(min {ms.min():.1f}, max {ms.max():.1f});  CPU ms median "
               f"{np.median(cpu_ms):.1f}")
         if name == "manhattan":
+            from perception.vanishing_points import angle_between_directions
+
+            picked = np.array([
+                float(angle_between_directions(res.forward().direction, truth.forward))
+                if res.forward() is not None else 90.0 for res, truth in zip(results, truths,
+                                                                             strict=True)])
+            print(f"  forward() : {summary(picked)}  (the detector's own forward pick)")
             nees = nees_forward(results, truths)
             print(f"  forward NEES (2 dof, GT label noise included): median {np.median(nees):.2f} "
                   f"mean {np.mean(nees):.2f}  share < chi2_2(0.95)=5.99: "

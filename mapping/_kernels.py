@@ -138,6 +138,19 @@ def _ray_setup(ox, oy, oz, ex, ey, ez, k0, res):
     return length, step, tmax, tdelta
 
 
+@njit(cache=True, inline="always")
+def _axis_setup(di, k, o, res):
+    """(step, tMax, tDelta) of one axis as computeRayKeys (float direction, float half-step)."""
+    if di > 0:
+        step = 1
+    elif di < 0:
+        step = -1
+    else:
+        return 0, DBL_MAX, DBL_MAX
+    border = _key_to_coord(k, res) + np.float64(np.float32(step * res * 0.5))
+    return step, (border - np.float64(o)) / np.float64(di), res / np.float64(abs(di))
+
+
 @njit(cache=True)
 def ray_keys(ox, oy, oz, ex, ey, ez, res, out):
     """computeRayKeys: fill ``out`` (M,3) with the ray's keys; return count (-1 = out of bounds)."""
@@ -262,33 +275,30 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
         end_ok = k1[0] >= 0 and k1[1] >= 0 and k1[2] >= 0
         ray_ok = end_ok and ok0[0] >= 0 and ok0[1] >= 0 and ok0[2] >= 0
         if ray_ok and not (ok0[0] == k1[0] and ok0[1] == k1[1] and ok0[2] == k1[2]):
-            length, step, tmax, tdelta = _ray_setup(ox, oy, oz, ex, ey, ez, ok0, res)
+            rdx = np.float32(ex - ox)
+            rdy = np.float32(ey - oy)
+            rdz = np.float32(ez - oz)
+            nsq = np.float32(np.float32(rdx * rdx + rdy * rdy) + rdz * rdz)
+            length = np.float32(math.sqrt(np.float64(nsq)))
             kx = ok0[0]
             ky = ok0[1]
             kz = ok0[2]
+            sx, tx, dtx = _axis_setup(np.float32(rdx / length), kx, ox, res)
+            sy, ty, dty = _axis_setup(np.float32(rdy / length), ky, oy, res)
+            sz, tz, dtz = _axis_setup(np.float32(rdz / length), kz, oz, res)
             ex_k = k1[0]
             ey_k = k1[1]
             ez_k = k1[2]
-            sx = step[0]
-            sy = step[1]
-            sz = step[2]
-            tx = tmax[0]
-            ty = tmax[1]
-            tz = tmax[2]
-            dtx = tdelta[0]
-            dty = tdelta[1]
-            dtz = tdelta[2]
-            lbx = -1
-            lby = -1
-            lbz = -1
-            base = 0
             ncells = 0
+            # brick-local coordinates; a step that leaves 0..7 on its axis changes brick
+            need_brick = True
+            base = 0
+            lx = kx & 7
+            ly = ky & 7
+            lz = kz & 7
             while True:
-                bx = kx >> 3
-                by = ky >> 3
-                bz = kz >> 3
-                if bx != lbx or by != lby or bz != lbz:
-                    bc = morton(bx, by, bz)
+                if need_brick:
+                    bc = morton(kx >> 3, ky >> 3, kz >> 3)
                     idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
                     if idx < 0:
                         if nb >= pool_cap or (nb + 1) * 2 > cap:
@@ -299,13 +309,11 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                         nb += 1
                         tab_keys[h] = bc
                         tab_vals[h] = idx
-                    lbx = bx
-                    lby = by
-                    lbz = bz
                     base = idx * 512
-                li = base + (kx & 7) + ((ky & 7) << 3) + ((kz & 7) << 6)
-                if pool[li] == 0:
-                    pool[li] = 1
+                    need_brick = False
+                # bit 0 = free; the occupied bit 2 is kept (occupied wins)
+                li = base + lx + (ly << 3) + (lz << 6)
+                pool[li] |= 1
                 ncells += 1
                 if ncells > 200000:
                     break
@@ -314,16 +322,32 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                     if tx < tz:
                         kx = (kx + sx) & 0xFFFF
                         tx += dtx
+                        lx += sx
+                        if lx & ~7:
+                            lx &= 7
+                            need_brick = True
                     else:
                         kz = (kz + sz) & 0xFFFF
                         tz += dtz
+                        lz += sz
+                        if lz & ~7:
+                            lz &= 7
+                            need_brick = True
                 else:
                     if ty < tz:
                         ky = (ky + sy) & 0xFFFF
                         ty += dty
+                        ly += sy
+                        if ly & ~7:
+                            ly &= 7
+                            need_brick = True
                     else:
                         kz = (kz + sz) & 0xFFFF
                         tz += dtz
+                        lz += sz
+                        if lz & ~7:
+                            lz &= 7
+                            need_brick = True
                 if kx == ex_k and ky == ey_k and kz == ez_k:
                     break
                 if min(tx, min(ty, tz)) > length:
@@ -341,7 +365,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                 nb += 1
                 tab_keys[h] = bc
                 tab_vals[h] = idx
-            pool[idx * 512 + (k1[0] & 7) + ((k1[1] & 7) << 3) + ((k1[2] & 7) << 6)] = 2
+            pool[idx * 512 + (k1[0] & 7) + ((k1[1] & 7) << 3) + ((k1[2] & 7) << 6)] |= 2
         if hit and not end_ok:
             counters[2] += 1
         if not ray_ok:
@@ -456,7 +480,7 @@ def scan_key_sets(points, origin, res, max_range, discretize):
             s = pool[base + local[m]]
             if s != 0:
                 out[t] = hi | np.uint64(m)
-                is_hit[t] = s == 2
+                is_hit[t] = (s & 2) != 0
                 t += 1
     return out, is_hit, n_nonfinite, n_oob, n_failed
 
@@ -653,16 +677,21 @@ def preorder(first, cmask, has_root):
 
     This is liboctomap's tree/leaf iterator order and its .ot/.bt payload order.
     """
-    if not has_root:
-        return np.empty(0, np.int64), np.empty(0, np.uint8), np.empty((0, 3), np.uint16)
-    cap = 1024
-    nodes = np.empty(cap, np.int64)
-    depths = np.empty(cap, np.uint8)
-    keys = np.empty((cap, 3), np.uint16)
+    total, _ = count_nodes(first, cmask, has_root)
+    nodes = np.empty(total, np.int64)
+    depths = np.empty(total, np.uint8)
+    keys = np.empty((total, 3), np.uint16)
+    if total == 0:
+        return nodes, depths, keys
+    _fill_preorder(first, cmask, nodes, depths, keys)
+    return nodes, depths, keys
+
+
+@njit(cache=True)
+def _fill_preorder(first, cmask, nodes, depths, keys):
     st_n = np.empty(8 * 17 + 8, np.int64)
     st_d = np.empty(8 * 17 + 8, np.int64)
     st_k = np.empty((8 * 17 + 8, 3), np.int64)
-    sp = 0
     st_n[0] = 0
     st_d[0] = 0
     st_k[0, 0] = 32768
@@ -674,47 +703,28 @@ def preorder(first, cmask, has_root):
         sp -= 1
         n = st_n[sp]
         d = st_d[sp]
-        if t == cap:
-            cap *= 2
-            nn = np.empty(cap, np.int64)
-            nn[:t] = nodes[:t]
-            nodes = nn
-            ndp = np.empty(cap, np.uint8)
-            ndp[:t] = depths[:t]
-            depths = ndp
-            nk = np.empty((cap, 3), np.uint16)
-            nk[:t] = keys[:t]
-            keys = nk
-        nodes[t] = n
-        depths[t] = d
-        for a in range(3):
-            keys[t, a] = st_k[sp, a]
         kx = st_k[sp, 0]
         ky = st_k[sp, 1]
         kz = st_k[sp, 2]
+        nodes[t] = n
+        depths[t] = d
+        keys[t, 0] = kx
+        keys[t, 1] = ky
+        keys[t, 2] = kz
         t += 1
         f = first[n]
         if f >= 0:
             m = cmask[n]
             off = 32768 >> (d + 1)
+            lo = off + (0 if off else 1)
             for k in range(7, -1, -1):
                 if (m >> k) & 1:
                     st_n[sp] = f + k
                     st_d[sp] = d + 1
-                    if k & 1:
-                        st_k[sp, 0] = kx + off
-                    else:
-                        st_k[sp, 0] = kx - off - (0 if off else 1)
-                    if k & 2:
-                        st_k[sp, 1] = ky + off
-                    else:
-                        st_k[sp, 1] = ky - off - (0 if off else 1)
-                    if k & 4:
-                        st_k[sp, 2] = kz + off
-                    else:
-                        st_k[sp, 2] = kz - off - (0 if off else 1)
+                    st_k[sp, 0] = kx + off if k & 1 else kx - lo
+                    st_k[sp, 1] = ky + off if k & 2 else ky - lo
+                    st_k[sp, 2] = kz + off if k & 4 else kz - lo
                     sp += 1
-    return nodes[:t], depths[:t], keys[:t]
 
 
 @njit(cache=True)
@@ -926,6 +936,30 @@ def _search_one(first, cmask, kx, ky, kz):
     return nd
 
 
+@njit(cache=True, inline="always")
+def _search_path(first, cmask, code, prev, pstk, plen):
+    """search(key) resuming from the deepest node shared with the previous key's path.
+
+    Returns (node or -1, new path length). Consecutive DDA cells share most of their path.
+    """
+    x = code ^ prev
+    shared = 16 if x == 0 else 15 - _msb(x) // 3
+    d = min(shared, plen - 1)
+    nd = pstk[d]
+    while d < 16:
+        f = first[nd]
+        if f < 0:
+            return nd, d + 1
+        pos = np.int64((code >> np.uint64(3 * (15 - d))) & np.uint64(7))
+        if (cmask[nd] >> pos) & 1:
+            nd = f + pos
+            d += 1
+            pstk[d] = nd
+        else:
+            return -1, d + 1
+    return nd, 17
+
+
 @njit(cache=True)
 def cast_rays(val, first, cmask, has_root, origins, directions, res, occ_thres,
               ignore_unknown, max_range):
@@ -945,6 +979,7 @@ def cast_rays(val, first, cmask, has_root, origins, directions, res, occ_thres,
     tdelta = np.empty(3, np.float64)
     max_set = max_range > 0.0
     mr2 = max_range * max_range
+    pstk = np.zeros(17, np.int64)
     for i in range(n):
         ox = np.float32(origins[i, 0])
         oy = np.float32(origins[i, 1])
@@ -990,6 +1025,8 @@ def cast_rays(val, first, cmask, has_root, origins, directions, res, occ_thres,
         if step[0] == 0 and step[1] == 0 and step[2] == 0:
             status[i] = 2
             continue
+        prev = morton(cur[0], cur[1], cur[2])
+        plen = 1
         while True:
             if tmax[0] < tmax[1]:
                 dim = 0 if tmax[0] < tmax[2] else 2
@@ -1017,7 +1054,11 @@ def cast_rays(val, first, cmask, has_root, origins, directions, res, occ_thres,
                 dsq += np.float64(np.float32(a2 * a2))
                 if dsq > mr2:
                     break
-            nd = _search_one(first, cmask, cur[0], cur[1], cur[2]) if has_root else -1
+            nd = -1
+            if has_root:
+                code = morton(cur[0], cur[1], cur[2])
+                nd, plen = _search_path(first, cmask, code, prev, pstk, plen)
+                prev = code
             if nd >= 0:
                 if val[nd] >= occ_thres:
                     hit[i] = True
@@ -1182,3 +1223,45 @@ def ot_decode(data, start, node_bytes):
                 st_d[sp] = d + 1
                 sp += 1
     return payload, first, cmask, nb, pos, -1
+
+
+@njit(cache=True)
+def leaf_arrays(first, val, nodes, depths, keys, res, max_depth):
+    """Leaves of a pre-order listing: (index into listing, centres (M,3), sizes, log-odds).
+
+    ``max_depth`` < 16 treats nodes at that depth as leaves (iterator maxDepth); descendants of
+    such nodes are skipped because they come right after them in pre-order.
+    """
+    n = nodes.shape[0]
+    sel = np.empty(n, np.int64)
+    m = 0
+    skip_below = 255
+    for t in range(n):
+        d = depths[t]
+        if d > skip_below:
+            continue
+        skip_below = 255
+        if first[nodes[t]] < 0:
+            sel[m] = t
+            m += 1
+        elif d == max_depth:
+            sel[m] = t
+            m += 1
+            skip_below = d
+    centers = np.empty((m, 3), np.float64)
+    sizes = np.empty(m, np.float64)
+    lo = np.empty(m, np.float32)
+    for j in range(m):
+        t = sel[j]
+        d = np.int64(depths[t])
+        scale = np.float64(1 << (16 - d))
+        size = res * scale
+        sizes[j] = size
+        lo[j] = val[nodes[t]]
+        for a in range(3):
+            if d == 0:
+                centers[j, a] = 0.0
+            else:
+                centers[j, a] = (math.floor((np.float64(keys[t, a]) - 32768.0) / scale) + 0.5) \
+                    * size
+    return sel[:m], centers, sizes, lo

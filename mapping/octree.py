@@ -401,10 +401,13 @@ class OcTree:
         clamp_min (judged on its own stored value)."""
         if not self._has_root:
             return
-        nodes, _, _ = self._structure()
-        v = self._val[nodes]
-        self._val[nodes] = np.where(v >= self.occupancy_thres_log, self.clamp_max_log,
-                                    self.clamp_min_log)
+        # every node converts on its own value, so one pass over all used slots is the same
+        # as liboctomap's depth sweeps (unused slots are re-initialised before any use)
+        used = int(self._state[1]) * 8
+        v = self._val[:used]
+        with np.errstate(invalid="ignore"):
+            self._val[:used] = np.where(v >= self.occupancy_thres_log, self.clamp_max_log,
+                                        self.clamp_min_log)
         self._changed()
 
     # ------------------------------------------------------------------ counts
@@ -428,10 +431,22 @@ class OcTree:
         return 320 + 16 * n + 64 * self.num_inner_nodes()
 
     def memory_bytes(self) -> int:
-        """Bytes this implementation holds for the tree arrays (used slots only)."""
-        used_slots = int(self._state[1]) * 8
-        per_slot = 4 + 8 + 1 + (3 if self.color is not None else 0)
-        return used_slots * per_slot + self._free.shape[0] * 8
+        """Bytes this implementation allocates for the tree (all array capacity)."""
+        arrays = [self._val, self._first, self._cmask, self._free]
+        if self.color is not None:
+            arrays.append(self.color)
+        return int(sum(a.nbytes for a in arrays))
+
+    def compact(self) -> None:
+        """Release array capacity beyond the used blocks (freed blocks inside stay reusable)."""
+        used = max(int(self._state[1]), 1)
+        n = used * 8
+        self._val = self._val[:n].copy()
+        self._first = self._first[:n].copy()
+        self._cmask = self._cmask[:n].copy()
+        self._free = self._free[:used].copy()
+        if self.color is not None:
+            self.color = self.color[:n].copy()
 
     # ------------------------------------------------------------------ queries
     def is_occupied(self, log_odds) -> np.ndarray:
@@ -487,11 +502,9 @@ class OcTree:
         corners (leaf_bbx_iterator). ``max_depth`` > 0 treats nodes at that depth as leaves.
         """
         nodes, depths, keys = self._structure()
-        if max_depth and max_depth < 16:
-            is_leaf = (self._first[nodes] < 0) & (depths <= max_depth) | (depths == max_depth)
-        else:
-            is_leaf = self._first[nodes] < 0
-        sel = np.flatnonzero(is_leaf)
+        md = int(max_depth) if max_depth and max_depth < 16 else 16
+        sel, centers, sizes, vals = _k().leaf_arrays(self._first, self._val, nodes, depths, keys,
+                                                     self.resolution, md)
         keys_l = keys[sel]
         depths_l = depths[sel]
         if bbox_min is not None or bbox_max is not None:
@@ -507,13 +520,9 @@ class OcTree:
             kmin = np.where(depths_l[:, None] == 16, keys_l.astype(np.int64), kmin)
             kmax = np.where(depths_l[:, None] == 16, keys_l.astype(np.int64), kmax)
             inside = ((kmax >= lo_k) & (kmin <= hi_k)).all(axis=1)
-            sel = sel[inside]
-            keys_l = keys_l[inside]
-            depths_l = depths_l[inside]
-        vals = self._val[nodes[sel]]
-        return Leaves(keys_l, depths_l,
-                      _key_to_coord(keys_l.astype(np.int64), depths_l, self.resolution),
-                      self.resolution * (2.0 ** (16 - depths_l.astype(np.float64))), vals.copy())
+            keys_l, depths_l = keys_l[inside], depths_l[inside]
+            centers, sizes, vals = centers[inside], sizes[inside], vals[inside]
+        return Leaves(keys_l, depths_l, centers, sizes, vals)
 
     def iter_leaves(self, bbox_min=None, bbox_max=None):
         """Iterate (centre (3,), size, log_odds, depth) over leaves (see :meth:`leaves`)."""

@@ -106,6 +106,9 @@ class OdometryResult:
         Number of pixel correspondences at the finest level (0 on failure).
     init : str
         Where the dense odometry started: "pnp", "given" (T_init) or "identity".
+    information : np.ndarray or None
+        Open3D's raw 6x6 information matrix ([rotation, translation], left perturbation in
+        the previous camera frame, unit-variance points); None on failure.
     """
 
     T_prev_curr: gtsam.Pose3
@@ -115,6 +118,7 @@ class OdometryResult:
     ms: float
     correspondences: int = 0
     init: str = "identity"
+    information: np.ndarray | None = None
 
 
 def _failure(T_init: gtsam.Pose3, config: OdometryConfig, reason: str, start: float,
@@ -200,12 +204,14 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
         Consecutive frames (rgb uint8, depth_m float32 metres, 0 = invalid).
     intr : CameraIntrinsics
     T_init : gtsam.Pose3, optional
-        Initial guess of T_prev_curr (identity by default); pass the previous increment
-        when the camera moves more than a few centimetres per frame.
+        Guess of T_prev_curr used when the feature + PnP guess fails or is disabled
+        (``config.pnp_init``); identity by default. Pass the previous increment (constant
+        velocity) when the camera moves more than a few centimetres per frame.
     config : OdometryConfig
 
     Failures (too few depth pixels, no convergence, too few correspondences, implausible
-    motion, singular information) return ``success=False`` with the reason, the guess as
+    motion, dense result far from the PnP guess, singular information) return
+    ``success=False`` with the reason, the guess (PnP's if it had one, else ``T_init``) as
     the pose and a very large covariance; never an exception. Frames that do not match the
     camera size raise PerceptionError.
     """
@@ -271,4 +277,4 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
         return _failure(T_init, config, "singular information matrix", start, init)
     cov = information_to_covariance(info, T_prev_curr, config)
     return OdometryResult(T_prev_curr, cov, True, "", (time.perf_counter() - start) * 1e3,
-                          correspondences, init)
+                          correspondences, init, np.array(info))

@@ -138,7 +138,7 @@ class ManhattanConfig:
         Seed of the hypothesis sampler (results are deterministic).
     score_angle_deg : float
         Angle (segment vs. line from its midpoint to the VP) at which a segment stops
-        contributing to a hypothesis score (linear fall-off from 0).
+        contributing to a hypothesis score (weight 1 - sin^2 / sin^2(score_angle_deg)).
     inlier_angle_deg : float
         Inlier threshold of the same angle for the refinement.
     refine_iterations : int
@@ -148,8 +148,9 @@ class ManhattanConfig:
         pixels (the image of a finite 3D segment never reaches its VP; segments meeting at a
         junction would otherwise vote for the junction).
     min_inliers : int
-        A VP needs this many inlier segments to count as observed. With two observed VPs the
-        third is implied by orthogonality and reported too (with its own, larger, covariance).
+        A VP needs this many inlier segments, on at least two distinct image lines, to count
+        as observed. With two observed VPs the third is implied by the orthogonality prior and
+        reported too (no inliers, score 0, its own larger covariance).
     orthogonality_deg : float
         Standard deviation (degrees) of a soft prior on the deviation of each VP pair from
         90 degrees in the final MAP fit: real scenes and calibrations are not exactly
@@ -161,10 +162,10 @@ class ManhattanConfig:
         Variance inflation of the least-squares noise for errors the endpoint-noise model
         cannot see (segments cut from one edge are correlated, lens distortion, imperfect
         Manhattan structure). 20 calibrates the forward-VP NEES against the yud_train ground
-        truth (mean 2.8, median 0.9, 88 % under the 95 % chi-square(2) quantile; nominal 2,
+        truth (mean 2.7, median 0.9, 88 % under the 95 % chi-square(2) quantile; nominal 2,
         1.39, 95 %); 1.0 gives the bare least-squares covariance, which is consistent for
         independent endpoint noise (synthetic Monte Carlo test) and on rendered images such as
-        the corridor simulator's (NEES mean 2.3): use 1.0 there.
+        the corridor simulator's (NEES mean 2.7-3.0): use 1.0 there.
     """
 
     lsd_scale: float = 0.5
@@ -342,28 +343,31 @@ def _sin2_to_vp(seg: _Segments, directions: np.ndarray, K: np.ndarray,
     """Return sin^2 of the image angle between each segment and the line from its midpoint to
     each VP: (..., M) for directions (..., 3). Works for VPs at infinity.
 
-    With v = K d the homogeneous VP, the numerator t x (v_xy - m v_z) is the segment's
-    (unit-normal) line dotted with v, and the squared denominator |v_xy - m v_z|^2 expands into
-    products with m: both are matrix products, which keeps the RANSAC scoring cheap.
-    The image of a finite 3D segment never reaches its VP, so a VP on the segment (or within
-    ``seg.reach`` of its midpoint along the line, i.e. closer than the gap to an end) gets
-    sin^2 = 1: this rejects junctions of short segments, which otherwise look like VPs."""
+    With v = K d the homogeneous VP (pixels relative to the principal point), the numerator
+    t x (v_xy - m v_z) is the segment's unit-normal line dotted with v, and the squared
+    distance |v_xy - m v_z|^2 = [|v_xy|^2, v_x v_z, v_y v_z, v_z^2] . [1, -2 m_x, -2 m_y, |m|^2]:
+    both are matrix products, which keeps the RANSAC scoring cheap.
+    The image of a finite 3D segment never reaches its VP, so a VP on the segment or less than
+    the gap beyond its ends (along-line distance from the midpoint below ``seg.reach``) gets
+    sin^2 = 1: this rejects junctions of segments, which otherwise look like VPs."""
     lead = directions.shape[:-1]
-    v = (directions.reshape(-1, 3) @ K.T).astype(dtype)  # (P, 3) homogeneous pixel VPs
-    # centre pixel coordinates on the image so that float32 keeps enough digits
+    v = directions.reshape(-1, 3) @ K.T
+    v[:, :2] -= seg.centre * v[:, 2:3]  # centred: float32 keeps enough digits
+    vx, vy, vz = v[:, 0], v[:, 1], v[:, 2]
+    Q = np.column_stack([vx * vx + vy * vy, vx * vz, vy * vz, vz * vz]).astype(dtype)
     t, m = seg.tangent, seg.mid - seg.centre
-    v[:, :2] -= seg.centre.astype(dtype) * v[:, 2:3]
-    line = np.column_stack([-t[:, 1], t[:, 0], t[:, 1] * m[:, 0] - t[:, 0] * m[:, 1]])
-    num = v @ line.T.astype(dtype)  # (P, M)
-    vz = v[:, 2:3]
-    den2 = (np.sum(v[:, :2] ** 2, axis=1)[:, None] - 2.0 * vz * (v[:, :2] @ m.T.astype(dtype))
-            + vz ** 2 * np.sum(m ** 2, axis=1).astype(dtype))
-    num2 = num * num
-    sin2 = num2 / np.maximum(den2, dtype(1e-24) if dtype is np.float64 else dtype(1e-30))
-    # squared distance along the line from the midpoint to the VP is den2 - num2
-    on_segment = den2 - num2 < vz * vz * (seg.reach ** 2).astype(dtype)
-    sin2[on_segment] = 1.0
-    return sin2.reshape(*lead, len(m))
+    line = np.vstack([-t[:, 1], t[:, 0], t[:, 1] * m[:, 0] - t[:, 0] * m[:, 1]]).astype(dtype)
+    mm = np.sum(m * m, axis=1)
+    W = np.vstack([np.ones(len(m)), -2.0 * m[:, 0], -2.0 * m[:, 1], mm, mm - seg.reach ** 2])
+    W = W.astype(dtype)
+    num2 = v.astype(dtype) @ line
+    np.multiply(num2, num2, out=num2)
+    den2 = Q @ W[:4]
+    # along-line distance^2 = den2 - num2 < (v_z reach)^2  <=>  Q . W_off < num2
+    on_segment = (Q @ W[[0, 1, 2, 4]]) < num2
+    np.divide(num2, np.maximum(den2, np.finfo(dtype).tiny, out=den2), out=num2)
+    np.copyto(num2, dtype(1.0), where=on_segment)
+    return num2.reshape(*lead, len(m))
 
 
 def _hypotheses(seg: _Segments, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -422,12 +426,10 @@ def _skew(v: np.ndarray) -> np.ndarray:
 
 
 def _expmap(w: np.ndarray) -> np.ndarray:
-    theta = np.linalg.norm(w)
-    W = _skew(w)
-    if theta < 1e-12:
-        return np.eye(3) + W
-    return (np.eye(3) + np.sin(theta) / theta * W
-            + (1.0 - np.cos(theta)) / theta ** 2 * W @ W)
+    """Return the rotation matrix exp([w]x) (OpenCV's Rodrigues formula)."""
+    import cv2
+
+    return cv2.Rodrigues(np.asarray(w, dtype=np.float64).reshape(3, 1))[0]
 
 
 def _assign(seg: _Segments, R: np.ndarray, K: np.ndarray, sin_inlier: float):

@@ -16,6 +16,7 @@ headset coordinates (a reflection, so not a rotation).
 from __future__ import annotations
 
 import json
+import sys
 
 
 def register(add_command) -> None:
@@ -154,7 +155,9 @@ def run_calibrate(args) -> int:
     if args.left_handed:
         out["frames"] += f"; headset axis {args.flip_axis} negated first (left-handed input)"
     _write(args.output, out)
-    if args.graph:
+    if args.graph and not result.converged:
+        print(f"not writing {args.graph}: the calibration did not converge", file=sys.stderr)
+    elif args.graph:
         import gtsam
 
         from estimation.io import write_pose_graph

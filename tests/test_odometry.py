@@ -54,6 +54,11 @@ def test_recovers_the_known_motion(frames, results):
     assert np.linalg.norm(error[3:]) < 0.01                       # < 1 cm of a 24 cm step
     assert np.degrees(np.linalg.norm(error[:3])) < 0.1
     assert result.correspondences > 10000 and result.ms > 0
+    # Open3D's information is ordered [rotation, translation]: its translation block is
+    # (number of correspondences) x identity, the rotation block depends on the points
+    np.testing.assert_allclose(result.information[3:, 3:], result.correspondences * np.eye(3),
+                               rtol=1e-6)
+    assert not np.allclose(np.diag(result.information[:3, :3]), result.correspondences)
     np.testing.assert_allclose(result.cov, result.cov.T)
     assert np.all(np.linalg.eigvalsh(result.cov) > 0)
     for k, later in enumerate(results):

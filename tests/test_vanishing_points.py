@@ -114,7 +114,7 @@ def test_seed_finds_rendered_vp_and_drops_axis_parallel_lines():
     result = detect_seed(image, K=K_SYN)
     assert len(result.vps) == 1
     found = result.vps[0]
-    assert np.linalg.norm(found.uv - vp) < 1.5
+    assert np.linalg.norm(found.uv - vp) < 1.0  # sub-pixel
     # the axis-parallel lines were dropped: no kept segment is within the tolerance of an axis
     kept = result.segments[found.inliers]
     folded = np.degrees(np.arctan2(np.abs(kept[:, 3] - kept[:, 1]),

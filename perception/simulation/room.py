@@ -46,7 +46,7 @@ CLASS = {name: i for i, name in enumerate(CLASS_NAMES)}
 # name -> (eye position, look-at point) of the headset, in the room frame
 VIEWPOINTS = {
     "tv": ((2.2, 2.2, 1.6), (0.8, 4.6, 0.8)),
-    "desk": ((3.8, 2.8, 1.6), (5.5, 4.0, 0.7)),
+    "desk": ((3.6, 2.6, 1.6), (5.4, 4.2, 0.8)),
     "shelf": ((3.0, 2.3, 1.6), (3.1, 4.8, 1.0)),
     "dining": ((1.8, 2.4, 1.6), (3.5, 1.0, 0.6)),
 }
@@ -79,12 +79,12 @@ class RoomConfig:
     height: float = 2.6
     label_accuracy: float = 0.9
     robot_label_accuracy: float = 0.95
-    robot_voxel: float = 0.04
+    robot_voxel: float = 0.03
     headset_voxel: float = 0.02
     image_width: int = 320
     image_height: int = 240
     focal: float = 240.0
-    depth_noise: float = 0.004
+    depth_noise: float = 0.0015
     headset_offset_m: float = 1.5
     headset_offset_deg: float = 60.0
     left_handed: bool = False
@@ -271,8 +271,11 @@ def robot_views(config: RoomConfig) -> list[np.ndarray]:
         eye = centre + np.array([0.8 * np.cos(angle), 0.6 * np.sin(angle), 0.0])
         target = centre + np.array([3.0 * np.cos(angle), 3.0 * np.sin(angle), -0.4])
         poses.append(look_at(eye, target))
+    # the robot also looks at each place from its head height (HSR: up to ~1.3 m) and from
+    # both sides, so that the map covers what the headset sees from above
     for eye, target in VIEWPOINTS.values():
-        poses.append(look_at((eye[0], eye[1], 1.0), target))
+        for dx, dy, z in ((0.0, 0.0, 1.0), (0.5, -0.3, 1.3), (-0.5, 0.3, 1.3)):
+            poses.append(look_at((eye[0] + dx, eye[1] + dy, z), target))
     return poses
 
 
