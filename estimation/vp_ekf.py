@@ -39,9 +39,15 @@ from filterpy.kalman import ExtendedKalmanFilter
 from scipy.stats import chi2
 
 from .errors import EstimationError
-from .geometry import (R_BODY_CAMERA, euler_matrix_derivatives, euler_rate_matrix,
-                       euler_rate_matrix_inverse, euler_to_matrix, matrix_to_euler,
-                       wrap_angle)
+from .geometry import (
+    R_BODY_CAMERA,
+    euler_matrix_derivatives,
+    euler_rate_matrix,
+    euler_rate_matrix_inverse,
+    euler_to_matrix,
+    matrix_to_euler,
+    wrap_angle,
+)
 
 STATE_DIM = 9
 POS = slice(0, 3)
@@ -465,8 +471,8 @@ class VanishingPointEKF(ExtendedKalmanFilter):
             B = tangent_basis(predicted[axis])
             Q = B.T @ self._direction_cov(uvs[i], covs[i]) @ B
             outcomes[i] = self._gated_update(
-                B.T @ d_meas, lambda s, a=axis, B=B: B.T @ manhattan_jacobian(s, R0, a),
-                lambda s, a=axis, B=B: B.T @ manhattan_observation(s, R0, a), Q)
+                B.T @ d_meas, lambda s, a=axis, B=B, R0=R0: B.T @ manhattan_jacobian(s, R0, a),
+                lambda s, a=axis, B=B, R0=R0: B.T @ manhattan_observation(s, R0, a), Q)
         return outcomes
 
     @property

@@ -9,7 +9,6 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -20,7 +19,7 @@ KEY_OFFSET = 32768
 
 
 def logodds(p: float) -> np.float32:
-    """Log-odds of probability ``p`` as liboctomap stores it: computed in double, kept as float32."""
+    """Log-odds of ``p`` as liboctomap stores it: computed in double, kept as float32."""
     return np.float32(math.log(p / (1.0 - p)))
 
 
@@ -323,8 +322,9 @@ class OcTree:
             e = (o + (d / fl).astype(np.float32) * np.float32(max_range)).astype(np.float32)
             hit = False
         keys = self.compute_ray_keys(o, e)
-        for key in keys:
-            self.update_node(key[None, :], False, lazy_eval=lazy_eval, keys=True)
+        # the keys of one ray are distinct, so one sorted batch equals per-key updateNode calls
+        codes = np.sort(_k().keys_to_codes(np.ascontiguousarray(keys)))
+        self._apply(codes, np.full(codes.shape[0], self.prob_miss_log, np.float32), lazy_eval)
         if hit:
             self.update_node(e[None, :], True, lazy_eval=lazy_eval)
 

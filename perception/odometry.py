@@ -78,8 +78,8 @@ class OdometryConfig:
     min_correspondences: int = 2000
     max_translation: float = 1.0
     max_rotation_deg: float = 30.0
-    cov_scale: float = 0.0023
-    cov_floor: tuple[float, ...] = (5.3e-5, 4.4e-5, 1.8e-5, 1.3e-4, 1.9e-4, 2.3e-3)
+    cov_scale: float = 0.0024
+    cov_floor: tuple[float, ...] = (7.1e-5, 4.6e-5, 1e-5, 1.7e-4, 3.2e-4, 2.96e-3)
     failure_sigma: tuple[float, float] = (1.0, 10.0)
     pnp_init: bool = True
     pnp_min_inliers: int = 15

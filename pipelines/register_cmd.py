@@ -59,9 +59,8 @@ def _common(parser, default_method: str) -> None:
 
 
 def _load(path: str, method: str):
-    from perception.semantic_cloud import SemanticCloud
-
     from estimation.errors import FormatError
+    from perception.semantic_cloud import SemanticCloud
 
     try:
         return SemanticCloud.read_ply(path)
@@ -69,8 +68,8 @@ def _load(path: str, method: str):
         if method != "gicp" or "neither" not in str(exc):
             raise
     # geometry-only PLY: fine for GICP
-    import open3d as o3d
     import numpy as np
+    import open3d as o3d
 
     pcd = o3d.t.io.read_point_cloud(str(path))
     points = pcd.point.positions.numpy().astype(float)
@@ -78,12 +77,10 @@ def _load(path: str, method: str):
 
 
 def _register(args, source, target, flip=None) -> dict:
-    import numpy as np
 
     from estimation.covariance import nees
     from estimation.errors import OctofactorError
-    from estimation.registration import (
-        Registration, RegistrationConfig, pose_error, read_transform)
+    from estimation.registration import Registration, RegistrationConfig, pose_error, read_transform
 
     if args.method == "semantic" and source.n_classes != target.n_classes:
         raise OctofactorError(f"source has {source.n_classes} classes, target "

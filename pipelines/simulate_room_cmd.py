@@ -20,16 +20,28 @@ def register(add_command) -> None:
                         help="size of the ground-truth headset frame offset, m (1.5)")
     parser.add_argument("--offset-deg", type=float, default=60.0,
                         help="its rotation, degrees (up to; 60)")
+    parser.add_argument("--image-size", default="320x240", metavar="WxH",
+                        help="ray-cast image size of both cameras (320x240)")
+    parser.add_argument("--focal", type=float, default=None,
+                        help="focal length in pixels (default 0.75 x width)")
     parser.set_defaults(func=run)
 
 
 def run(args) -> int:
+    from estimation.errors import OctofactorError
     from perception.simulation.room import RoomConfig, simulate_room
+
+    try:
+        width, height = (int(v) for v in args.image_size.lower().split("x"))
+    except ValueError:
+        raise OctofactorError(
+            f"--image-size must look like 320x240, got {args.image_size!r}") from None
 
     config = RoomConfig(seed=args.seed, label_accuracy=args.label_accuracy,
                         robot_label_accuracy=args.robot_label_accuracy,
                         left_handed=args.left_handed, headset_offset_m=args.offset_m,
-                        headset_offset_deg=args.offset_deg)
+                        headset_offset_deg=args.offset_deg, image_width=width,
+                        image_height=height, focal=args.focal or 0.75 * width)
     views = tuple(v.strip() for v in args.views.split(",") if v.strip())
     written = simulate_room(args.out_dir, config, views)
     for name, path in written.items():

@@ -29,6 +29,8 @@ def register(add_command) -> None:
     parser.add_argument("--max-range", type=float, default=5.0,
                         help="cut map rays at this range (m, -1: no limit)")
     parser.add_argument("--no-map", action="store_true", help="skip clouds and octree")
+    parser.add_argument("--vo-scale", type=float, default=1.0,
+                        help="image scale for the odometry only (0.5: ~4x faster, noisier)")
     parser.add_argument("--max-frames", type=int, default=None, help="use the first N frames")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
@@ -58,7 +60,8 @@ def run(args) -> int:
         intrinsics = _resolve_intrinsics(Path(args.seq_dir), args.intrinsics, args.depth_scale)
     config = VpSlamConfig(vp_model="none" if args.no_vp else args.vp_model,
                           vp_distance=args.vp_distance, map_resolution=args.resolution,
-                          max_range=args.max_range, build_map=not args.no_map)
+                          max_range=args.max_range, build_map=not args.no_map,
+                          vo_scale=args.vo_scale)
     if args.gate is not None:
         if not args.gate > 0:
             raise OctofactorError(f"--gate must be positive, got {args.gate}")

@@ -123,11 +123,13 @@ def test_depth_range_limits():
     assert depth[depth > 0].min() >= config.min_depth
 
 
-def test_depth_noise_follows_the_xtion_model(short_scene):
-    intr = SHORT.intrinsics
-    _, poses = corridor_trajectory(SHORT)
-    _, exact = render_frame(short_scene, poses[0], intr, rng=None)
-    _, noisy = render_frame(short_scene, poses[0], intr, rng=np.random.default_rng(7))
+def test_depth_noise_follows_the_xtion_model():
+    config = CorridorConfig(seed=3, length=3.5, clutter=1, disparity_step=0.0)
+    scene = build_corridor_scene(config)
+    intr = config.intrinsics
+    _, poses = corridor_trajectory(config)
+    _, exact = render_frame(scene, poses[0], intr, rng=None)
+    _, noisy = render_frame(scene, poses[0], intr, rng=np.random.default_rng(7))
     both = (exact > 0) & (noisy > 0)
     normalised = (noisy[both] - exact[both]) / exact[both] ** 2
     # sigma = 1.5e-3 z^2; quantisation (0.2 mm) adds little at these depths
@@ -136,6 +138,20 @@ def test_depth_noise_follows_the_xtion_model(short_scene):
     dropped = np.mean((exact > 0) & (noisy == 0))
     assert 0.5 * SHORT.dropout < dropped < 0.1    # random dropouts + grazing angles
     np.testing.assert_allclose(np.rint(noisy * 5000.0), noisy * 5000.0, atol=1e-3)  # 0.2 mm
+
+
+def test_depth_lies_on_the_disparity_lattice(short_scene):
+    intr = SHORT.intrinsics
+    _, poses = corridor_trajectory(SHORT)
+    _, depth = render_frame(short_scene, poses[1], intr, rng=np.random.default_rng(8))
+    z = depth[depth > 0].astype(np.float64)
+    steps = intr.fx * SHORT.baseline / z / SHORT.disparity_step
+    # only the 0.2 mm PNG rounding moves depth off the lattice (< 0.05 step up to 3.5 m)
+    assert np.max(np.abs(steps - np.rint(steps))) < 0.05
+    # and the lattice is coarse: between 2.3 and 2.5 m (levels ~1.7 cm apart) only ~11 depth
+    # values occur, where the 0.2 mm PNG step alone would allow 1000
+    band = (z > 2.3) & (z < 2.5)
+    assert band.sum() > 1000 and len(np.unique(z[band])) <= 14
 
 
 def test_config_errors():

@@ -8,9 +8,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from estimation.geometry import (R_BODY_CAMERA, d_se3, euler_from_pose3, euler_matrix_derivatives,
-                                 euler_rate_matrix, euler_rate_matrix_inverse, euler_to_matrix,
-                                 matrix_to_euler, pose3_from_euler, wrap_angle)
+from estimation.geometry import (
+    R_BODY_CAMERA,
+    d_se3,
+    euler_from_pose3,
+    euler_matrix_derivatives,
+    euler_rate_matrix,
+    euler_rate_matrix_inverse,
+    euler_to_matrix,
+    matrix_to_euler,
+    pose3_from_euler,
+    wrap_angle,
+)
 
 angle = st.floats(-np.pi + 1e-6, np.pi - 1e-6)
 pitch = st.floats(-np.pi / 2 + 1e-3, np.pi / 2 - 1e-3)

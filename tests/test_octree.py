@@ -10,11 +10,11 @@ import subprocess
 from pathlib import Path
 
 import numpy as np
+import octomap
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import octomap
 from mapping import OcTree, fuse, logodds
 from mapping.octree import probability
 
@@ -101,7 +101,8 @@ def test_keys_match_liboctomap(rng):
     tree = OcTree(0.05)
     ref = octomap.OcTree(0.05)
     pts = rng.uniform(-50, 50, size=(200, 3)).astype(np.float32)
-    pts[:5] = [[0, 0, 0], [0.05, -0.05, 0.025], [-1e-7, 1e-7, 0.1], [1638.35, -1638.4, 3], [0, 0, 0]]
+    pts[:5] = [[0, 0, 0], [0.05, -0.05, 0.025], [-1e-7, 1e-7, 0.1], [1638.35, -1638.4, 3],
+               [0, 0, 0]]
     keys = tree.coord_to_key(pts)
     back = tree.key_to_coord(keys)
     for p, k, c in zip(pts, keys, back, strict=True):
@@ -368,3 +369,44 @@ def test_probability_helpers(sphere_pair):
     at = tree.is_at_threshold(np.array([3.6, 3.51103067, 0.0, -2.1], np.float32))
     assert at.tolist() == [True, True, False, True]
     assert np.allclose(probability(lv.log_odds), 1 - 1 / (1 + np.exp(lv.log_odds)))
+
+
+def test_fuse_rotated_multi_node_graph_equals_graph2tree(scan_points, graph2tree, tmp_path):
+    """Rotated, translated node poses: fuse() reproduces graph2tree's float32 quaternion math."""
+    import gtsam
+
+    from estimation import PoseGraph, Scan
+    from estimation.io import read_scan_graph, write_scan_graph
+
+    rng = np.random.default_rng(11)
+    pg = PoseGraph()
+    for i in range(3):
+        rot = gtsam.Rot3.Ypr(*rng.uniform(-np.pi, np.pi, 3))
+        pose = gtsam.Pose3(rot, rng.uniform(-3, 3, 3))
+        pts = scan_points[rng.choice(len(scan_points), 4000, replace=False)]
+        pg.add_node(i * 5 + 2, pose, scan=Scan(pts))
+    path = tmp_path / "rot.graph"
+    write_scan_graph(path, pg)
+    ref_bt, ref_ot = graph2tree(path, 0.1, 6.0)
+    tree = fuse(read_scan_graph(path), 0.1, max_range=6.0)
+    assert tree.to_bytes_ot() == ref_ot
+    # the in-memory graph (poses as gtsam.Pose3, no file round trip) gives the same map
+    assert fuse(pg, 0.1, max_range=6.0).to_bytes_ot() == ref_ot
+    tree.write_bt(tmp_path / "rot.bt")
+    assert (tmp_path / "rot.bt").read_bytes() == ref_bt
+
+
+def test_insert_ray_equals_per_key_updates_and_cuts_at_max_range():
+    o, e = np.array([0.03, -0.41, 0.2]), np.array([2.7, 1.35, -0.9])
+    tree = OcTree(0.1)
+    tree.insert_ray(o, e)
+    ref = octomap.OcTree(0.1)
+    for key in OcTree(0.1).compute_ray_keys(o, e):
+        ref.updateNode(OcTree(0.1).key_to_coord(key[None])[0], False)
+    ref.updateNode(e, True)
+    assert tree.to_bytes_ot() == ref.write()
+    cut = OcTree(0.1)
+    cut.insert_ray(o, e, max_range=1.0)
+    lv = cut.leaves()
+    assert len(lv) > 0 and (lv.log_odds < 0).all()
+    assert np.linalg.norm(lv.centers - o, axis=1).max() < 1.0 + 0.1

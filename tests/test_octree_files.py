@@ -2,11 +2,11 @@
 from __future__ import annotations
 
 import numpy as np
+import octomap
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import octomap
 from estimation.errors import FormatError
 from mapping import OcTree
 from mapping.io import read_tree

@@ -101,6 +101,16 @@ def test_point_covariances_are_plane_like(rng):
     np.testing.assert_allclose(np.abs(normals[:, 2]), 1.0, atol=1e-9)
 
 
+def test_closed_form_regularisation_matches_eigh(rng):
+    from estimation.registration._kernels import regularise_covariances
+
+    A = rng.normal(size=(500, 3, 3)) * rng.uniform(0.01, 3, (500, 1, 3))
+    cov = A @ np.swapaxes(A, 1, 2)
+    normals = np.linalg.eigh(cov)[1][:, :, 0]
+    expected = np.eye(3) - (1 - 1e-3) * normals[:, :, None] * normals[:, None, :]
+    np.testing.assert_allclose(regularise_covariances(cov, 1e-3), expected, atol=1e-8)
+
+
 def test_cauchy_weight_is_derivative_of_loss():
     e = np.linspace(0, 50, 11)
     h = 1e-6

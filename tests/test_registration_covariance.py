@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_registration import make_pair
 
 from estimation.covariance import check_consistency, nees
 from estimation.registration import RegistrationConfig, pose_error, register
-
-from test_registration import make_pair
 
 N_TRIALS = 30
 

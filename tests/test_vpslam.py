@@ -101,6 +101,12 @@ def test_missing_frame_and_failed_vo_are_counted_not_fatal(corridor, tmp_path):
     assert sum(v for k, v in skipped.items() if k.startswith("vo:")) >= 2
     assert report["vp_updates"] == 0
     assert report["ate_rmse_m"] < 0.5
+    from estimation.io import read_g2o
+
+    graph = read_g2o(out / "graph.g2o")
+    assert sorted(graph.nodes) == [0, 1, 2, 3, 5, 6, 7, 8, 9, 10]
+    edges = sorted(tuple(f.nodes) for f in graph.factors if len(f.nodes) == 2)
+    assert (3, 5) in edges and len(edges) == 9  # the gap is bridged by one factor
 
 
 def test_without_groundtruth_starts_at_body_identity(corridor, tmp_path):
@@ -124,3 +130,12 @@ def test_bad_input_exits_2(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["vpslam", str(tmp_path), "-o", str(tmp_path / "out"), "--intrinsics", "1,2"])
     assert exc.value.code == 2
+
+
+def test_half_resolution_odometry(corridor, tmp_path):
+    assert main(["vpslam", str(corridor), "-o", str(tmp_path), "--quiet", "--no-map",
+                 "--vo-scale", "0.5", "--max-frames", "6"]) == 0
+    report = json.loads((tmp_path / "report.json").read_text())
+    assert report["frames"] == 6
+    assert not any(k.startswith("vo:") for k in report["skipped_updates"])
+    assert report["ate_rmse_m"] < 0.05

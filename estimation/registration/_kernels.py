@@ -10,18 +10,57 @@ import numpy as np
 
 
 @numba.njit(cache=True)
+def smallest_eigenvector(a00, a01, a02, a11, a12, a22):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix (closed form).
+
+    Eigenvalues by the trigonometric method (Smith 1961); the eigenvector is the largest
+    cross product of two rows of A - lambda I. Avoids one LAPACK call per point.
+    """
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
+    if p2 <= 1e-30 * (q * q + 1e-300):
+        return 0.0, 0.0, 1.0  # isotropic: any direction
+    p = np.sqrt(p2 / 6.0)
+    c00, c11, c22 = b00 / p, b11 / p, b22 / p
+    c01, c02, c12 = a01 / p, a02 / p, a12 / p
+    r = 0.5 * (c00 * (c11 * c22 - c12 * c12) - c01 * (c01 * c22 - c12 * c02)
+               + c02 * (c01 * c12 - c11 * c02))
+    r = min(max(r, -1.0), 1.0)
+    phi = np.arccos(r) / 3.0
+    lam = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    r0 = (a00 - lam, a01, a02)
+    r1 = (a01, a11 - lam, a12)
+    r2 = (a02, a12, a22 - lam)
+    best = -1.0
+    vx, vy, vz = 0.0, 0.0, 1.0
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        cx = u[1] * v[2] - u[2] * v[1]
+        cy = u[2] * v[0] - u[0] * v[2]
+        cz = u[0] * v[1] - u[1] * v[0]
+        n2 = cx * cx + cy * cy + cz * cz
+        if n2 > best:
+            best = n2
+            vx, vy, vz = cx, cy, cz
+    if best <= 0.0:
+        return 0.0, 0.0, 1.0
+    nrm = np.sqrt(best)
+    return vx / nrm, vy / nrm, vz / nrm
+
+
+@numba.njit(cache=True)
 def regularise_covariances(cov: np.ndarray, epsilon: float) -> np.ndarray:
-    """Replace the eigenvalues of each (N, 3, 3) covariance by (epsilon, 1, 1)."""
+    """Replace the eigenvalues of each (N, 3, 3) covariance by (epsilon, 1, 1).
+
+    With orthonormal eigenvectors that is I - (1 - epsilon) n n^T, n the surface normal.
+    """
     n = cov.shape[0]
     out = np.empty_like(cov)
+    s = 1.0 - epsilon
     for m in range(n):
-        _, vecs = np.linalg.eigh(cov[m])
-        nx, ny, nz = vecs[0, 0], vecs[1, 0], vecs[2, 0]
-        nrm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        if nrm == 0.0:
-            nrm = 1.0
-        nx, ny, nz = nx / nrm, ny / nrm, nz / nrm
-        s = 1.0 - epsilon
+        nx, ny, nz = smallest_eigenvector(cov[m, 0, 0], cov[m, 0, 1], cov[m, 0, 2],
+                                          cov[m, 1, 1], cov[m, 1, 2], cov[m, 2, 2])
         out[m, 0, 0] = 1.0 - s * nx * nx
         out[m, 0, 1] = -s * nx * ny
         out[m, 0, 2] = -s * nx * nz

@@ -14,6 +14,11 @@ from ..errors import EstimationError
 from . import _kernels
 
 
+def _workers(n: int) -> int:
+    """Threads for a KD-tree query: starting threads costs more than small queries gain."""
+    return -1 if n >= 5000 else 1
+
+
 def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
                       tree: cKDTree | None = None) -> np.ndarray:
     """Return the (N, 3, 3) plane-regularised GICP covariance of every point.
@@ -67,7 +72,8 @@ def nearest_correspondences(source_in_target: np.ndarray, target_tree: cKDTree,
                             d_max: float) -> Correspondences:
     """Return nearest-neighbour pairs closer than ``d_max`` (ICP's omega_i of eq. (2))."""
     n = len(source_in_target)
-    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max)
+    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max,
+                                  workers=_workers(n))
     ok = np.isfinite(dist)
     src = np.nonzero(ok)[0]
     return Correspondences(src, idx[ok].astype(np.int64), np.ones(len(src)), dist[ok], n)
@@ -127,7 +133,11 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         raise EstimationError(
             f"source has {c_src} classes but the target has {index.n_classes}")
     top = min(int(top_classes), c_src)
-    order = np.argsort(-source_probs, axis=1)[:, :top]
+    order = np.empty((n, top), dtype=np.int64)
+    masked = np.array(source_probs, dtype=float, copy=True)
+    for rank in range(top):  # top-k by repeated argmax: cheaper than a full argsort
+        order[:, rank] = masked.argmax(axis=1)
+        masked[np.arange(n), order[:, rank]] = -np.inf
     src_rows, tgt_rows, dists, prior = [], [], [], []
     for rank in range(top):
         cls_of_point = order[:, rank]
@@ -137,7 +147,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
             rows = np.nonzero((cls_of_point == c) & searched)[0]
             if len(rows) == 0:
                 continue
-            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max)
+            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
+                                 workers=_workers(len(rows)))
             ok = np.isfinite(dist)
             if not ok.any():
                 continue

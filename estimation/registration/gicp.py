@@ -28,7 +28,14 @@ from .correspondences import (
     semantic_correspondences,
     transform_points,
 )
-from .factors import BatchedGicpFactor, cauchy_loss, cauchy_weight, gicp_terms, solve_weighted, whitening
+from .factors import (
+    BatchedGicpFactor,
+    cauchy_loss,
+    cauchy_weight,
+    gicp_terms,
+    solve_weighted,
+    whitening,
+)
 
 # Variance given to directions the data leave unconstrained (rad^2 or m^2): large enough to
 # show "unknown", finite so that the matrix stays a valid covariance for a PoseGraph.
@@ -88,7 +95,7 @@ class RegistrationConfig:
             raise EstimationError(
                 f"semantic_weight must be 'inside' or 'outside', got {self.semantic_weight!r}")
         if self.covariance not in ("sandwich", "hessian"):
-            raise EstimationError(f"covariance must be 'sandwich' or 'hessian'")
+            raise EstimationError("covariance must be 'sandwich' or 'hessian'")
 
 
 @dataclass(frozen=True)
@@ -350,8 +357,9 @@ class Registration:
             A = H  # too many residuals beyond the kernel's inflection: fall back to IRLS
         clustered = cluster_sums(tgt, w[:, None] * g, self.cluster_size(T, corr))
         B = clustered.T @ clustered
+        sandwich = cfg.covariance == "sandwich"
         cov, unconstrained = covariance_from_information(
-            A if cfg.covariance == "sandwich" else H, B if cfg.covariance == "sandwich" else None, self._scale(src),
+            A if sandwich else H, B if sandwich else None, self._scale(src),
             self._normal_information(T, src, tgt, corr, w), cfg.degeneracy_ratio)
         inliers = len(corr)
         if unconstrained:

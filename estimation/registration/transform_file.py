@@ -13,7 +13,8 @@ def read_transform(path: str | os.PathLike) -> np.ndarray:
     """Return the rigid 4x4 matrix stored as text in ``path`` (FormatError when it is not one)."""
     with open(path) as handle:
         text = handle.read(1 << 16)
-    rows = [ln.split() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    rows = [ln.split() for ln in text.splitlines()
+            if ln.strip() and not ln.lstrip().startswith("#")]
     if len(rows) != 4 or any(len(r) != 4 for r in rows):
         raise FormatError(path, "expected 4 lines of 4 numbers (a 4x4 matrix)")
     try:

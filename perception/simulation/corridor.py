@@ -9,7 +9,8 @@ The scene is what the seed paper's robot saw: plain walls, floor and ceiling wit
 different colours, door frames and panels (edges that the vanishing-point detectors use),
 a skirting board, ceiling lamps, faint surface texture (so that photometric odometry has
 something) and optional clutter boxes. Depth gets Xtion-like noise: Gaussian with
-sigma = ``depth_noise`` * z^2, quantised to the PNG step 1/depth_scale, nothing nearer than
+sigma = ``depth_noise`` * z^2, then the structured-light disparity quantisation (1/8 px,
+steps of ~z^2 / 315 m), stored with the PNG step 1/depth_scale; nothing nearer than
 ``min_depth`` or beyond ``max_depth``, nothing at grazing incidence, and random dropouts.
 
 In memory::
@@ -79,6 +80,12 @@ class CorridorConfig:
         Depth measured only in [min_depth, max_depth] (m).
     dropout : float
         Probability that a depth pixel is missing at random.
+    disparity_step : float
+        Structured-light quantisation: disparity (pixels, f * baseline / z) is rounded to
+        this step (Kinect/Xtion: 1/8 px), giving depth steps of z^2 step / (f baseline);
+        0 disables it.
+    baseline : float
+        Projector-camera baseline (m) for the disparity quantisation (Xtion: 0.075).
     grazing_cos : float
         Depth is missing where |cos(incidence)| < grazing_cos.
     rgb_noise : float
@@ -110,6 +117,8 @@ class CorridorConfig:
     min_depth: float = 0.5
     max_depth: float = 8.0
     dropout: float = 0.01
+    disparity_step: float = 0.125
+    baseline: float = 0.075
     grazing_cos: float = 0.08
     rgb_noise: float = 1.0
     texture: float = 0.05
@@ -359,7 +368,8 @@ def render_frame(scene: CorridorScene, T_world_camera: gtsam.Pose3, intr: Camera
         np.float32(config.texture), np.float32(_TEXEL), noisy, frame_seed,
         np.float32(config.rgb_noise), np.float32(config.depth_noise), np.float32(config.dropout),
         np.float32(config.grazing_cos), np.float32(config.min_depth),
-        np.float32(config.max_depth), np.float32(intr.depth_scale))
+        np.float32(config.max_depth), np.float32(intr.depth_scale),
+        np.float64(intr.fx * config.baseline), np.float64(config.disparity_step))
     if noisy:
         # the same float32 division as perception.rgbd.read_depth: files and memory agree
         depth = np.minimum(depth, np.float32(np.iinfo(np.uint16).max)) / np.float32(
@@ -399,7 +409,8 @@ def _kernels():
     @numba.njit(cache=True, fastmath=True, nogil=True)
     def kernel(rays, t_hit, geometry, primitive, normals, offsets, albedo, lamps, texture,
                amplitude, texel, noisy, seed, rgb_sigma, depth_coefficient, dropout,
-               grazing_cos, min_depth, max_depth, depth_scale):
+               grazing_cos, min_depth, max_depth, depth_scale, focal_baseline,
+               disparity_step):
         if noisy:
             np.random.seed(seed)  # numba's own generator state, not NumPy's
         n = t_hit.shape[0]
@@ -465,6 +476,9 @@ def _kernels():
                 # Xtion-like: sigma grows with z^2; stored with the PNG's step 1/depth_scale
                 # (stored as PNG counts here; divided outside exactly as the reader does)
                 z = t + depth_coefficient * np.random.standard_normal() * t * t
+                if disparity_step > 0.0:
+                    disparity = focal_baseline / z
+                    z = focal_baseline / (np.rint(disparity / disparity_step) * disparity_step)
                 depth[i] = np.rint(z * depth_scale)
             else:
                 depth[i] = t

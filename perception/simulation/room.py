@@ -120,8 +120,7 @@ class Room:
 
 def _palette(n: int) -> np.ndarray:
     hues = np.linspace(0, 1, n, endpoint=False)
-    return np.c_[0.5 + 0.5 * np.cos(2 * np.pi * hues), 0.5 + 0.5 * np.cos(2 * np.pi * (hues - 1 / 3)),
-                 0.5 + 0.5 * np.cos(2 * np.pi * (hues - 2 / 3))]
+    return np.stack([0.5 + 0.5 * np.cos(2 * np.pi * (hues - k / 3)) for k in range(3)], axis=1)
 
 
 def _box(lo, hi):
@@ -157,7 +156,8 @@ def build_room(config: RoomConfig | None = None) -> Room:
                        _box((W - 1.4, D - 1.3, 0.47), (W - 1.35, D - 0.85, 0.95))]
     # bookshelf: frame, boards and rows of books
     x0, x1, y0, y1 = 2.5, 3.8, D - 0.35, D - 0.02
-    parts["shelf"] += [_box((x0, y0, 0), (x0 + 0.03, y1, 1.9)), _box((x1 - 0.03, y0, 0), (x1, y1, 1.9))]
+    parts["shelf"] += [_box((x0, y0, 0), (x0 + 0.03, y1, 1.9)),
+                       _box((x1 - 0.03, y0, 0), (x1, y1, 1.9))]
     parts["shelf"] += [_box((x0, y0, z), (x1, y1, z + 0.03)) for z in (0.0, 0.45, 0.9, 1.35, 1.87)]
     rng = np.random.default_rng(cfg.seed)
     for z in (0.03, 0.48, 0.93, 1.38):
@@ -165,7 +165,8 @@ def build_room(config: RoomConfig | None = None) -> Room:
         while x < x1 - 0.15:
             w = rng.uniform(0.03, 0.08)
             h = rng.uniform(0.2, 0.38)
-            parts["books"].append(_box((x, y0 + rng.uniform(0.0, 0.08), z), (x + w, y1 - 0.02, z + h)))
+            depth_offset = rng.uniform(0.0, 0.08)
+            parts["books"].append(_box((x, y0 + depth_offset, z), (x + w, y1 - 0.02, z + h)))
             x += w + rng.uniform(0.0, 0.05)
     # dining table with legs and four chairs
     cx, cy = 3.5, 1.1

@@ -1,0 +1,62 @@
+"""`octofactor register`: RESULT.json contents, ground-truth errors, exit codes."""
+from __future__ import annotations
+
+import json
+
+import gtsam
+import numpy as np
+from test_registration import make_pair, one_hot
+
+from estimation.registration import write_transform
+from perception.semantic_cloud import SemanticCloud
+from pipelines.cli import main
+
+
+def write_pair(tmp_path, seed=11):
+    source, labels_s, target, labels_t, T_gt = make_pair(seed, 2000)
+    SemanticCloud(source, one_hot(labels_s, acc=0.9)).write_ply(tmp_path / "src.ply")
+    SemanticCloud(target, one_hot(labels_t, acc=0.9)).write_ply(tmp_path / "tgt.ply")
+    write_transform(tmp_path / "gt.txt", T_gt)
+    return T_gt
+
+
+def test_register_writes_result_with_errors(tmp_path):
+    T_gt = write_pair(tmp_path)
+    init = T_gt @ gtsam.Pose3(gtsam.Rot3.Yaw(0.03), np.array([0.05, 0, 0])).matrix()
+    write_transform(tmp_path / "init.txt", init)
+    for method in ("gicp", "semantic"):
+        out = tmp_path / f"{method}.json"
+        code = main(["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.ply"),
+                     "--method", method, "--init", str(tmp_path / "init.txt"),
+                     "--gt", str(tmp_path / "gt.txt"), "--max-corr", "0.3", "-o", str(out)])
+        data = json.loads(out.read_text())
+        assert code == 0 and data["converged"]
+        assert data["method"] == method
+        assert np.array(data["T"]).shape == (4, 4)
+        assert np.array(data["covariance"]).shape == (6, 6)
+        assert data["d_se3"] < 0.01 and data["t_err_m"] < 0.005 and data["r_err_rad"] < 0.002
+        assert data["time_s"] > 0 and data["iterations"] >= 1
+
+
+def test_register_bad_input_exits_2(tmp_path, capsys):
+    write_pair(tmp_path)
+    (tmp_path / "bad.txt").write_text("1 0 0\n0 1 0\n")
+    code = main(["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.ply"),
+                 "--init", str(tmp_path / "bad.txt"), "-o", str(tmp_path / "r.json")])
+    assert code == 2 and "4x4" in capsys.readouterr().err
+    code = main(["register", str(tmp_path / "missing.ply"), str(tmp_path / "tgt.ply"),
+                 "-o", str(tmp_path / "r.json")])
+    assert code == 2
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_register_failure_exits_1_with_reason(tmp_path):
+    write_pair(tmp_path)
+    far = np.eye(4)
+    far[:3, 3] = [40.0, 0, 0]
+    write_transform(tmp_path / "far.txt", far)
+    out = tmp_path / "r.json"
+    code = main(["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.ply"),
+                 "--init", str(tmp_path / "far.txt"), "-o", str(out)])
+    data = json.loads(out.read_text())
+    assert code == 1 and not data["converged"] and "correspondences" in data["reason"]
