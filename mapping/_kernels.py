@@ -575,13 +575,16 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
     Equivalent to liboctomap's per-key updateNode: the early exit on a clamped leaf, the
     expansion of pruned leaves (children copy the value), new nodes at 0.0, clamping, and on the
     way up pruneNode / max-of-children, done here when a node leaves the DFS path (its subtree is
-    final for this batch by then). Returns the number of keys that changed something.
+    final for this batch by then). Returns (number of keys that changed something, index of the
+    first key not applied for lack of child blocks or -1).
     """
     stk = np.zeros(17, np.int64)
     dirty = np.zeros(17, np.bool_)
     stk_len = 1
     prev = np.uint64(0)
     n_applied = 0
+    stopped = -1
+    cap_blocks = free_blocks.shape[0]
     for i in range(codes.shape[0]):
         code = codes[i]
         u = upd[i]
@@ -618,6 +621,11 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
             lv = val[nd]
             if (u >= 0 and lv >= cmax) or (u <= 0 and lv <= cmin):
                 continue
+        if state[0] + (cap_blocks - state[1]) < 16 - d:
+            # out of child blocks: stop before touching key i (the caller grows the arrays and
+            # applies codes[i:] as a new batch; consecutive batches equal one sequence)
+            stopped = i
+            break
         created = d == 0 and root_new and first[0] < 0
         while d < 16:
             pos = np.int64((code >> np.uint64(3 * (15 - d))) & np.uint64(7))
@@ -665,7 +673,7 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
             if not lazy:
                 _finalize(stk[d], val, first, cmask, free_blocks, state)
             dirty[d] = False
-    return n_applied
+    return n_applied, stopped
 
 
 # --------------------------------------------------------------------------- traversal

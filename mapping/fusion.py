@@ -92,15 +92,23 @@ def _same_pose(cached, t, q) -> bool:
 
 
 def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: bool = False,
-         tree: OcTree | None = None, progress: bool = False, **tree_kwargs) -> OcTree:
+         tree: OcTree | None = None, progress: bool = False, n_classes: int | None = None,
+         **tree_kwargs) -> OcTree:
     """The OcTree of every node scan of ``pose_graph`` inserted at its node pose, in id order.
 
-    Matches ``graph2tree -res R [-m max_range] [-discretize]`` bit for bit when the graph came
-    from a .graph file (the float32 transform is :func:`transform_points_octomap`). The tree is
-    not pruned further (insertion already prunes); ``write_bt`` converts to max-likelihood.
+    Matches ``graph2tree -res R [-m max_range] [-discretize]`` bit for bit (the float32
+    transform is :func:`transform_points_octomap`). The tree is not pruned further (insertion
+    already prunes); ``write_bt`` converts to max-likelihood. With ``n_classes`` (or a
+    SemanticOcTree as ``tree``) the scans' ``probs``/``labels`` are fused as class evidence.
     """
+    from .semantic import SemanticOcTree
+
     if tree is None:
-        tree = OcTree(resolution, **tree_kwargs)
+        if n_classes is not None:
+            tree = SemanticOcTree(resolution, n_classes, **tree_kwargs)
+        else:
+            tree = OcTree(resolution, **tree_kwargs)
+    semantic = isinstance(tree, SemanticOcTree)
     ids = pose_graph.sorted_ids() if hasattr(pose_graph, "sorted_ids") else sorted(
         pose_graph.nodes)
     iterator = ids
@@ -121,6 +129,11 @@ def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: boo
             t = np.asarray(cached.t, dtype=np.float64)
             q = np.asarray(cached.q_wxyz, dtype=np.float64)
         points_world, origin = transform_points_octomap(scan.points, t, q)
-        tree.insert_point_cloud(points_world, origin, max_range=max_range,
-                                discretize=discretize)
+        if semantic:
+            tree.insert_point_cloud(points_world, origin, probs=scan.probs,
+                                    labels=None if scan.probs is not None else scan.labels,
+                                    max_range=max_range, discretize=discretize)
+        else:
+            tree.insert_point_cloud(points_world, origin, max_range=max_range,
+                                    discretize=discretize)
     return tree

@@ -41,6 +41,8 @@ def bt_bytes(tree: OcTree) -> bytes:
 
     nodes, _, _ = tree._structure()
     tree_id = getattr(tree, "_file_id", None) or tree.tree_type
+    if tree_id == "SemanticOcTree":
+        tree_id = "OcTree"  # .bt holds occupancy only: liboctomap reads it as an OcTree
     head = _header(BT_MAGIC, tree_id, int(nodes.shape[0]), tree.resolution)
     if nodes.shape[0] == 0:
         return head

@@ -173,7 +173,7 @@ class OcTree:
         need = int(self._state[1]) + int(extra)
         if need <= cap:
             return
-        new_cap = max(need, int(cap * 1.5) + 16)
+        new_cap = max(need, int(cap * 1.25) + 16)
         n_old = cap * 8
         # slots beyond the used blocks are written before they are read: no initialisation
         val = np.empty(new_cap * 8, np.float32)
@@ -265,20 +265,33 @@ class OcTree:
         k = _k()
         if codes.shape[0] == 0:
             return 0
-        self._ensure_blocks(k.new_block_bound(codes) + 1)
+        # reserve what the batch can need at most, but not more than half the tree again:
+        # apply_updates stops cleanly when it runs out and the rest is applied after growing
+        used = int(self._state[1])
+        self._ensure_blocks(min(k.new_block_bound(codes), max(used // 2, 1 << 16)) + 17)
         root_new = not self._has_root
         if root_new:
             self._val[0] = 0.0
             self._first[0] = -1
             self._cmask[0] = 0
             self._has_root = True
-        n = k.apply_updates(self._val, self._first, self._cmask, self._free, self._state,
-                            codes, upd, self.clamp_min_log, self.clamp_max_log, root_new,
-                            bool(lazy))
-        if root_new and n == 0 and self._first[0] < 0:
+        total = 0
+        start = 0
+        while True:
+            n, stopped = k.apply_updates(
+                self._val, self._first, self._cmask, self._free, self._state, codes[start:],
+                upd[start:], self.clamp_min_log, self.clamp_max_log, root_new, bool(lazy))
+            total += n
+            if stopped < 0:
+                break
+            if n:
+                root_new = False
+            start += stopped
+            self._ensure_blocks(max(int(self._state[1]) // 2, 4096))
+        if root_new and total == 0 and self._first[0] < 0:
             self._has_root = False  # nothing was inserted
         self._changed()
-        return n
+        return total
 
     def insert_point_cloud(self, points, origin, max_range: float = -1.0,
                            discretize: bool = False, lazy_eval: bool = False) -> InsertStats:

@@ -221,10 +221,7 @@ class SemanticOcTree(OcTree):
         if not const:
             self.to_max_likelihood()
             self.prune()
-        plain = OcTree.__new__(OcTree)
-        plain.__dict__.update(self.__dict__)
-        plain.tree_type = "OcTree"
-        io.write_bt(plain, path)
+        io.write_bt(self, path)
 
     @classmethod
     def _read_ot(cls, data: bytes, hdr, path) -> SemanticOcTree:

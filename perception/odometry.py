@@ -52,13 +52,18 @@ class OdometryConfig:
     max_translation, max_rotation_deg : float
         Larger increments are reported as failures (divergence), m and degrees.
     cov_scale : float
-        Multiplies inv(information). Calibrated on the simulated corridor (seeds 1, 2):
-        Open3D's point-to-point information overstates the rotation and lateral
-        uncertainty ~15x and understates the forward one, so it is scaled down and ...
+        Multiplies inv(information). Open3D's point-to-point information overstates the
+        rotation and lateral uncertainty ~15x and understates the forward one, so it is
+        scaled down and ...
     cov_floor : tuple of 6 float
         ... standard deviations [rx, ry, rz (rad), tx, ty, tz (m)] in the current camera
         frame are added in quadrature to the diagonal. The large tz (along the optical axis)
         is the forward-motion error that photometric odometry makes in a monotonous corridor.
+        Both were fitted on the simulated corridor (seeds 1, 2, 6, 7; 15 m, 2 clutter boxes;
+        207 of 208 pairs: one gross 1.2 cm vertical outlier, NEES ~200, was left out of the
+        fit and is for the filter's gate) so that each axis and the 6-dof NEES have their
+        chi-square means; errors are heavy-tailed (~10 % of the pairs above the 95 %
+        quantile on that set).
     failure_sigma : tuple of float
         Standard deviations (rad, m) of the covariance returned with a failure.
     pnp_init : bool
@@ -78,8 +83,8 @@ class OdometryConfig:
     min_correspondences: int = 2000
     max_translation: float = 1.0
     max_rotation_deg: float = 30.0
-    cov_scale: float = 0.0024
-    cov_floor: tuple[float, ...] = (7.1e-5, 4.6e-5, 1e-5, 1.7e-4, 3.2e-4, 2.96e-3)
+    cov_scale: float = 0.00244
+    cov_floor: tuple[float, ...] = (8.1e-5, 5.9e-5, 9e-6, 1.54e-4, 2.47e-4, 2.21e-3)
     failure_sigma: tuple[float, float] = (1.0, 10.0)
     pnp_init: bool = True
     pnp_min_inliers: int = 15

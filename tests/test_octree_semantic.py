@@ -115,3 +115,23 @@ def test_cli_map_is_byte_identical_to_graph2tree(shared_data, tmp_path):
     assert b"element vertex 0" in (tmp_path / "empty.ply").read_bytes()
     assert main(["octree", "info", str(tmp_path / "x.ply")]) == 2  # not an octree: one line
     assert main(["map", str(graph), "-r", "0.05", "-o", str(tmp_path / "x.txt")]) == 2
+
+
+def test_fuse_pose_graph_with_labelled_scans(rng):
+    import gtsam
+
+    from estimation import PoseGraph, Scan
+    from mapping import fuse
+
+    pts, labels = _room(rng, 600)
+    pg = PoseGraph()
+    for i, x in enumerate((0.0, 0.3)):
+        pose = gtsam.Pose3(gtsam.Rot3(), np.array([x, 0.0, 1.0]))
+        local = (pts - np.array([x, 0.0, 1.0])).astype(np.float32)
+        pg.add_node(i, pose, scan=Scan(local, labels=labels))
+    sem = fuse(pg, 0.1, n_classes=2)
+    plain = fuse(pg, 0.1)
+    assert isinstance(sem, SemanticOcTree)
+    assert sem.to_bytes_bt() == plain.to_bytes_bt()
+    vox = sem.occupied_voxels()
+    assert (vox.labels >= 0).mean() > 0.9
