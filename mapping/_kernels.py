@@ -238,6 +238,16 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
     pool_cap = bcodes.shape[0]
     nb = counters[0]
     k1 = np.empty(3, np.int64)
+    # every ray starts in the origin's brick, and most end next to the last brick they walked:
+    # remember both instead of hashing them again
+    obx = ok0[0] >> 3
+    oby = ok0[1] >> 3
+    obz = ok0[2] >> 3
+    o_idx = -1
+    cbx = -1
+    cby = -1
+    cbz = -1
+    c_idx = -1
     for i in range(i0, n):
         px = np.float32(pts[i, 0])
         py = np.float32(pts[i, 1])
@@ -289,7 +299,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
             ex_k = k1[0]
             ey_k = k1[1]
             ez_k = k1[2]
-            ncells = 0
+            lend = np.float64(length)
             # brick-local coordinates; a step that leaves 0..7 on its axis changes brick
             need_brick = True
             base = 0
@@ -298,25 +308,34 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
             lz = kz & 7
             while True:
                 if need_brick:
-                    bc = morton(kx >> 3, ky >> 3, kz >> 3)
-                    idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
-                    if idx < 0:
-                        if nb >= pool_cap or (nb + 1) * 2 > cap:
-                            counters[0] = nb
-                            return i
-                        idx = nb
-                        bcodes[nb] = bc
-                        nb += 1
-                        tab_keys[h] = bc
-                        tab_vals[h] = idx
+                    bx = kx >> 3
+                    by = ky >> 3
+                    bz = kz >> 3
+                    if o_idx >= 0 and bx == obx and by == oby and bz == obz:
+                        idx = o_idx
+                    else:
+                        bc = morton(bx, by, bz)
+                        idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
+                        if idx < 0:
+                            if nb >= pool_cap or (nb + 1) * 2 > cap:
+                                counters[0] = nb
+                                return i
+                            idx = nb
+                            bcodes[nb] = bc
+                            nb += 1
+                            tab_keys[h] = bc
+                            tab_vals[h] = idx
+                        if bx == obx and by == oby and bz == obz:
+                            o_idx = idx
+                    cbx = bx
+                    cby = by
+                    cbz = bz
+                    c_idx = idx
                     base = idx * 512
                     need_brick = False
                 # bit 0 = free; the occupied bit 2 is kept (occupied wins)
                 li = base + lx + (ly << 3) + (lz << 6)
                 pool[li] |= 1
-                ncells += 1
-                if ncells > 200000:
-                    break
                 # advance (the first cell is the origin cell, already in the ray)
                 if tx < ty:
                     if tx < tz:
@@ -350,12 +369,20 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                             need_brick = True
                 if kx == ex_k and ky == ey_k and kz == ez_k:
                     break
-                if min(tx, min(ty, tz)) > length:
+                if tx > lend and ty > lend and tz > lend:
                     break
         if hit and end_ok:
             # occupied endpoint: state 2 wins over free
-            bc = morton(k1[0] >> 3, k1[1] >> 3, k1[2] >> 3)
-            idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
+            bx = k1[0] >> 3
+            by = k1[1] >> 3
+            bz = k1[2] >> 3
+            if c_idx >= 0 and bx == cbx and by == cby and bz == cbz:
+                idx = c_idx
+            elif o_idx >= 0 and bx == obx and by == oby and bz == obz:
+                idx = o_idx
+            else:
+                bc = morton(bx, by, bz)
+                idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
             if idx < 0:
                 if nb >= pool_cap or (nb + 1) * 2 > cap:
                     counters[0] = nb

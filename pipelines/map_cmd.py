@@ -10,7 +10,11 @@ from pathlib import Path
 def register(add_command) -> None:
     p = add_command("map", "fuse the scans of a .graph file into an octree (.bt or .ot), "
                     "byte-identical to graph2tree")
-    p.add_argument("graph", help="OctoMap ScanGraph .graph file (points in the sensor frame)")
+    p.add_argument("graph", help="pose graph: OctoMap .graph (poses + scans), or .g2o / TUM "
+                   ".txt with --clouds")
+    p.add_argument("--clouds", default=None, metavar="DIR",
+                   help="per-node clouds DIR/<node_id>.xyz|.ply|.pcd in the sensor frame "
+                   "(replace the graph's scans)")
     p.add_argument("-r", "--resolution", type=float, default=0.1, help="leaf size in m (0.1)")
     p.add_argument("--max-range", type=float, default=-1.0,
                    help="cut rays at this range in m (-1 = no limit, graph2tree -m)")
@@ -54,13 +58,18 @@ def _check_ext(path: str, allowed: tuple[str, ...]) -> str:
 
 def run_map(args: argparse.Namespace) -> int:
     from estimation.errors import OctofactorError
-    from estimation.io import read_scan_graph
+    from estimation.io import load_node_clouds, read_pose_graph
     from mapping import fuse
 
     ext = _check_ext(args.output, (".bt", ".ot"))
     if not args.resolution > 0:
         raise OctofactorError(f"resolution must be positive, got {args.resolution}")
-    graph = read_scan_graph(args.graph)
+    graph = read_pose_graph(args.graph)
+    if args.clouds is not None:
+        load_node_clouds(graph, args.clouds)
+    if not any(n.scan is not None and len(n.scan.points) for n in graph.nodes.values()):
+        raise OctofactorError(f"{args.graph}: no node has a scan (give --clouds DIR for "
+                              ".g2o/TUM graphs)")
     tree = fuse(graph, args.resolution, max_range=args.max_range, discretize=args.discretize,
                 progress=sys.stderr.isatty())
     if ext == ".bt":

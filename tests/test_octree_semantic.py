@@ -135,3 +135,21 @@ def test_fuse_pose_graph_with_labelled_scans(rng):
     assert sem.to_bytes_bt() == plain.to_bytes_bt()
     vox = sem.occupied_voxels()
     assert (vox.labels >= 0).mean() > 0.9
+
+
+def test_cli_map_from_g2o_and_node_clouds_equals_graph_input(shared_data, tmp_path):
+    from estimation.io import read_scan_graph, write_g2o
+    from pipelines.cli import main
+
+    graph_path = shared_data / "octomap" / "spherical_scan.graph"
+    g = read_scan_graph(graph_path)
+    clouds = tmp_path / "clouds"
+    clouds.mkdir()
+    for node_id, node in g.nodes.items():
+        np.savetxt(clouds / f"{node_id}.xyz", node.scan.points.astype(np.float64), fmt="%.9g")
+    write_g2o(tmp_path / "g.g2o", g)
+    assert main(["map", str(tmp_path / "g.g2o"), "-r", "0.1", "--clouds", str(clouds), "-o",
+                 str(tmp_path / "a.ot")]) == 0
+    assert main(["map", str(graph_path), "-r", "0.1", "-o", str(tmp_path / "b.ot")]) == 0
+    assert (tmp_path / "a.ot").read_bytes() == (tmp_path / "b.ot").read_bytes()
+    assert main(["map", str(tmp_path / "g.g2o"), "-r", "0.1", "-o", str(tmp_path / "c.ot")]) == 2

@@ -283,3 +283,15 @@ def test_read_pose_graph_dispatches_on_extension(shared_data, tmp_path):
     assert len(read_pose_graph(shared_data / SPHERICAL).nodes) == 1
     with pytest.raises(Exception, match="unknown pose-graph format"):
         read_pose_graph(Path(tmp_path / "x.bin"))
+
+
+def test_atomic_write_uses_the_umask_like_open(tmp_path):
+    import os
+
+    umask = os.umask(0o022)
+    try:
+        with atomic_write(tmp_path / "f.txt", "w") as handle:
+            handle.write("x")
+    finally:
+        os.umask(umask)
+    assert (tmp_path / "f.txt").stat().st_mode & 0o777 == 0o644

@@ -18,6 +18,7 @@ In memory::
     config = CorridorConfig(seed=3)
     scene = build_corridor_scene(config)
     stamps, poses = corridor_trajectory(config)          # poses: T_world_camera
+    rng = np.random.default_rng(0)                       # None: noise-free images
     rgb, depth_m = render_frame(scene, poses[0], config.intrinsics, rng)
 
 On disk: :func:`simulate_corridor` writes the TUM layout that
