@@ -334,3 +334,15 @@ def test_arbitrary_segments_never_raise(seed, n, repeat, collinear):
     for vp in result.vps:
         assert np.isclose(np.linalg.norm(vp.direction), 1.0) and vp.direction[2] >= 0
         assert vp.cov.shape == (2, 2) and not np.any(np.isnan(vp.cov))
+
+
+@pytest.mark.parametrize("scale", [0.5, 0.8, 1.0])
+def test_lsd_segments_use_integer_pixel_centres(scale):
+    from perception.lines import lsd_segments
+
+    for edge in (77, 101, 150):  # dark columns < edge, bright from edge on: boundary at edge-0.5
+        image = np.zeros((200, 300), np.uint8)
+        image[:, edge:] = 200
+        segments = lsd_segments(image, scale=scale)
+        assert len(segments) >= 1
+        assert abs(segments[0, 0] - (edge - 0.5)) < 0.15
