@@ -73,7 +73,10 @@ def bench_render(repeats: int) -> None:
           f"({n_frames} frames, includes scene build)")
 
 
-def bench_vo(seeds: list[int], length: float, peer_every: int) -> None:
+def bench_vo(seeds: list[int], length: float, peer_every: int, vo_scale: float = 1.0) -> None:
+    from dataclasses import replace
+
+    import cv2
     import gtsam
 
     from estimation.covariance import chi2_bounds, nees
@@ -95,14 +98,23 @@ def bench_vo(seeds: list[int], length: float, peer_every: int) -> None:
         scene = build_corridor_scene(config)
         stamps, poses = corridor_trajectory(config)
         rng = np.random.default_rng([seed, 2])
+        intr = config.intrinsics
+        # vo_scale < 1: resize as pipelines/vpslam.py does (pixel centres at integers)
+        width, height = round(intr.width * vo_scale), round(intr.height * vo_scale)
+        sx, sy = width / intr.width, height / intr.height
+        vo_intr = replace(intr, fx=intr.fx * sx, fy=intr.fy * sy, cx=(intr.cx + 0.5) * sx - 0.5,
+                          cy=(intr.cy + 0.5) * sy - 0.5, width=width, height=height)
         frames = []
         for k, pose in enumerate(poses):
-            rgb, depth = render_frame(scene, pose, config.intrinsics, rng)
+            rgb, depth = render_frame(scene, pose, intr, rng)
+            if vo_scale != 1.0:
+                rgb = cv2.resize(rgb, (width, height), interpolation=cv2.INTER_AREA)
+                depth = cv2.resize(depth, (width, height), interpolation=cv2.INTER_NEAREST)
             frames.append(RgbdFrame(k, float(stamps[k]), rgb, depth, pose))
         T_world_estimate = poses[0]
         for k in range(len(frames) - 1):
             truth = poses[k].between(poses[k + 1])
-            result = rgbd_odometry(frames[k], frames[k + 1], config.intrinsics)
+            result = rgbd_odometry(frames[k], frames[k + 1], vo_intr)
             ms.append(result.ms)
             # dead reckoning (a failed pair contributes its guess, as a filter would)
             T_world_estimate = T_world_estimate.compose(result.T_prev_curr)
@@ -113,8 +125,8 @@ def bench_vo(seeds: list[int], length: float, peer_every: int) -> None:
             errors.append(error)
             covs.append(result.cov)
             if peer_every and k % peer_every == 0:
-                peer = rgbd_odometry(frames[k], frames[k + 1], config.intrinsics,
-                                     gtsam.Pose3(), peer_config)
+                peer = rgbd_odometry(frames[k], frames[k + 1], vo_intr, gtsam.Pose3(),
+                                     peer_config)
                 if peer.success:
                     peer_errors.append(peer.T_prev_curr.localCoordinates(truth))
                     ours_on_peer_pairs.append(error)
@@ -126,7 +138,8 @@ def bench_vo(seeds: list[int], length: float, peer_every: int) -> None:
     n_pairs = len(errors) + len(failures)
     rot_deg = np.degrees(np.linalg.norm(errors[:, :3], axis=1))
     trans_cm = 100 * np.linalg.norm(errors[:, 3:], axis=1)
-    print(f"VO on simulated corridors (seeds {seeds}, {length} m, clutter 2): {n_pairs} pairs, "
+    print(f"VO at {vo_scale:g} x 640x480 on simulated corridors (seeds {seeds}, {length} m, "
+          f"clutter 2): {n_pairs} pairs, "
           f"{len(failures)} failures {sorted(set(failures))[:3]}; median {np.median(ms):.0f} ms "
           "per pair")
     print(f"  rotation error deg:    median {np.median(rot_deg):.4f}  p95 "
@@ -169,11 +182,14 @@ def main() -> int:
                         help="run the peer on every n-th pair (0: never)")
     parser.add_argument("--skip-render", action="store_true")
     parser.add_argument("--skip-vo", action="store_true")
+    parser.add_argument("--vo-scale", type=float, default=1.0,
+                        help="resize the images for the odometry (0.5: 320x240)")
     args = parser.parse_args()
     if not args.skip_render:
         bench_render(args.repeats)
     if not args.skip_vo:
-        bench_vo([int(s) for s in args.seeds.split(",")], args.length, args.peer_every)
+        bench_vo([int(s) for s in args.seeds.split(",")], args.length, args.peer_every,
+                 args.vo_scale)
     return 0
 
 

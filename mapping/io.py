@@ -54,6 +54,8 @@ def ot_bytes(tree: OcTree) -> bytes:
     """The .ot file of ``tree`` (every node: its data bytes, then the child-mask byte)."""
     nodes, _, _ = tree._structure()
     tree_id = getattr(tree, "_file_id", None) or tree.tree_type
+    if tree_id == "ColorOcTree" and tree.color is None:
+        tree_id = "OcTree"  # e.g. read from a ColorOcTree .bt, which carries no colours
     head = _header(OT_MAGIC, tree_id, int(nodes.shape[0]), tree.resolution)
     if tree.color is not None:
         rec = np.empty(nodes.shape[0], dtype=[("v", "<f4"), ("c", "u1", (3,)), ("m", "u1")])

@@ -14,6 +14,10 @@ _EXPORTS = {
     "manhattan_from_segments": "vanishing_points",
     "PerceptionError": "errors", "ImageError": "errors",
     "read_image": "lines",
+    "CameraIntrinsics": "rgbd", "RgbdFrame": "rgbd", "TumRgbdSequence": "rgbd",
+    "read_camera_file": "rgbd", "write_camera_file": "rgbd", "backproject": "rgbd",
+    "voxel_filter": "rgbd",
+    "rgbd_odometry": "odometry", "OdometryResult": "odometry", "OdometryConfig": "odometry",
 }
 
 __all__ = sorted(_EXPORTS)

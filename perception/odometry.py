@@ -10,9 +10,10 @@ the covariance is carried over with the adjoint of T_hat^-1.
 
 That information matrix counts every pixel as an independent unit-variance point, which is
 badly shaped for a corridor (rotation and lateral motion look 15x worse than they are,
-forward motion better); :class:`OdometryConfig` scales it by ``cov_scale`` and adds a
-per-axis floor, both calibrated on the simulated corridor so that the NEES against ground
-truth is close to its chi-square mean of 6 (benchmarks/corridor_sim.py measures it).
+forward motion better); it is scaled and given a per-axis floor calibrated on the simulated
+corridor for 640- and 320-pixel-wide images (:data:`COV_CALIBRATION`) so that the NEES
+against ground truth is close to its chi-square mean of 6 (benchmarks/corridor_sim.py
+measures it on other seeds).
 
 Open3D's dense odometry converges only from a guess within a few centimetres along a
 monotonous corridor (with 0.24 m steps from identity it settles on ~zero forward motion and
@@ -31,6 +32,36 @@ import numpy as np
 
 from perception.errors import PerceptionError
 from perception.rgbd import CameraIntrinsics, RgbdFrame
+
+# (cov_scale, cov_floor) per image width, fitted on the simulated corridor (seeds 1, 2, 6, 7;
+# 15 m, 2 clutter boxes; 640x480 renders, resized with INTER_AREA / INTER_NEAREST for 320).
+# Open3D's point-to-point information overstates the rotation and lateral uncertainty ~15x
+# and understates the forward one, so it is scaled down and a per-axis floor is added; the
+# large tz floor (along the optical axis) is the forward-motion error that photometric
+# odometry makes in a monotonous corridor. Fitted so that each axis and the 6-dof NEES have
+# their chi-square means; at 640 one gross 1.2 cm vertical outlier (NEES ~200) of the 208
+# pairs was left out of the fit (it is for the filter's gate). Errors are heavy-tailed:
+# ~10 % of the pairs lie above the 95 % chi-square quantile on the fitting set.
+COV_CALIBRATION: dict[int, tuple[float, tuple[float, ...]]] = {
+    640: (0.00244, (8.1e-5, 5.9e-5, 9e-6, 1.54e-4, 2.47e-4, 2.21e-3)),
+    320: (0.00258, (2.64e-4, 2.0e-4, 9e-6, 5.94e-4, 1.33e-3, 6.93e-3)),
+}
+
+
+def covariance_model(width: int, config: OdometryConfig | None = None
+                     ) -> tuple[float, tuple[float, ...]]:
+    """Return (cov_scale, cov_floor): the config's, else the calibration of the nearest width.
+
+    Widths between or beyond the calibrated ones take the nearest (in log ratio): the model
+    is only measured at the calibrated widths.
+    """
+    nearest = min(COV_CALIBRATION, key=lambda w: abs(np.log(w / max(width, 1))))
+    scale, floor = COV_CALIBRATION[nearest]
+    if config is not None and config.cov_scale is not None:
+        scale = config.cov_scale
+    if config is not None and config.cov_floor is not None:
+        floor = config.cov_floor
+    return scale, tuple(floor)
 
 
 @dataclass(frozen=True)
@@ -51,19 +82,11 @@ class OdometryConfig:
         Below this many correspondences (from the information matrix) the pair fails.
     max_translation, max_rotation_deg : float
         Larger increments are reported as failures (divergence), m and degrees.
-    cov_scale : float
-        Multiplies inv(information). Open3D's point-to-point information overstates the
-        rotation and lateral uncertainty ~15x and understates the forward one, so it is
-        scaled down and ...
-    cov_floor : tuple of 6 float
-        ... standard deviations [rx, ry, rz (rad), tx, ty, tz (m)] in the current camera
-        frame are added in quadrature to the diagonal. The large tz (along the optical axis)
-        is the forward-motion error that photometric odometry makes in a monotonous corridor.
-        Both were fitted on the simulated corridor (seeds 1, 2, 6, 7; 15 m, 2 clutter boxes;
-        207 of 208 pairs: one gross 1.2 cm vertical outlier, NEES ~200, was left out of the
-        fit and is for the filter's gate) so that each axis and the 6-dof NEES have their
-        chi-square means; errors are heavy-tailed (~10 % of the pairs above the 95 %
-        quantile on that set).
+    cov_scale : float or None
+        Multiplies inv(information); None: from :data:`COV_CALIBRATION` for the image width.
+    cov_floor : tuple of 6 float or None
+        Standard deviations [rx, ry, rz (rad), tx, ty, tz (m)] in the current camera frame
+        added in quadrature to the diagonal; None: from :data:`COV_CALIBRATION`.
     failure_sigma : tuple of float
         Standard deviations (rad, m) of the covariance returned with a failure.
     pnp_init : bool
@@ -83,8 +106,8 @@ class OdometryConfig:
     min_correspondences: int = 2000
     max_translation: float = 1.0
     max_rotation_deg: float = 30.0
-    cov_scale: float = 0.00244
-    cov_floor: tuple[float, ...] = (8.1e-5, 5.9e-5, 9e-6, 1.54e-4, 2.47e-4, 2.21e-3)
+    cov_scale: float | None = None
+    cov_floor: tuple[float, ...] | None = None
     failure_sigma: tuple[float, float] = (1.0, 10.0)
     pnp_init: bool = True
     pnp_min_inliers: int = 15
@@ -185,16 +208,19 @@ def _check_frame(frame: RgbdFrame, intr: CameraIntrinsics, which: str) -> None:
 
 
 def information_to_covariance(info: np.ndarray, T_prev_curr: gtsam.Pose3,
-                              config: OdometryConfig = OdometryConfig()) -> np.ndarray:
+                              config: OdometryConfig | None = None, width: int = 640
+                              ) -> np.ndarray:
     """Return the GTSAM-order right-perturbation covariance from Open3D's information matrix.
 
     cov_left = cov_scale * inv(info) (left perturbation in the previous camera frame),
-    cov = Ad(T^-1) cov_left Ad(T^-1)^T, plus the diagonal floor.
+    cov = Ad(T^-1) cov_left Ad(T^-1)^T, plus the diagonal floor; scale and floor from
+    ``config`` or, when it leaves them None, from :data:`COV_CALIBRATION` for ``width``.
     """
-    cov_left = config.cov_scale * np.linalg.inv(info)
+    cov_scale, cov_floor = covariance_model(width, config)
+    cov_left = cov_scale * np.linalg.inv(info)
     adjoint = T_prev_curr.inverse().AdjointMap()
     cov = adjoint @ cov_left @ adjoint.T
-    cov = cov + np.diag(np.square(np.asarray(config.cov_floor, dtype=float)))
+    cov = cov + np.diag(np.square(np.asarray(cov_floor, dtype=float)))
     return 0.5 * (cov + cov.T)
 
 
@@ -280,6 +306,6 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
                                             "from the PnP guess", start, init)
     if np.linalg.cond(info) > 1e12:
         return _failure(T_init, config, "singular information matrix", start, init)
-    cov = information_to_covariance(info, T_prev_curr, config)
+    cov = information_to_covariance(info, T_prev_curr, config, intr.width)
     return OdometryResult(T_prev_curr, cov, True, "", (time.perf_counter() - start) * 1e3,
                           correspondences, init, np.array(info))

@@ -8,7 +8,9 @@ import pytest
 from estimation.covariance import check_consistency, nees
 from perception.errors import PerceptionError
 from perception.odometry import (
+    COV_CALIBRATION,
     OdometryConfig,
+    covariance_model,
     information_to_covariance,
     pnp_guess,
     rgbd_odometry,
@@ -133,3 +135,14 @@ def test_covariance_is_consistent_with_the_errors(frames, results):
     # mis-tuned controls must fail the same check: over- and under-confident by 10x
     assert not check_consistency(nees(errors, covs / 10), dof=6).passed
     assert not check_consistency(nees(errors, covs * 10), dof=6).passed
+
+
+def test_covariance_model_follows_the_image_width():
+    assert covariance_model(640) == COV_CALIBRATION[640]
+    assert covariance_model(320) == COV_CALIBRATION[320]
+    assert covariance_model(1280) == COV_CALIBRATION[640]    # nearest calibrated width
+    assert covariance_model(300) == COV_CALIBRATION[320]
+    # a quarter of the pixels: the calibrated floor is larger on every axis
+    assert np.all(np.array(COV_CALIBRATION[320][1]) >= np.array(COV_CALIBRATION[640][1]))
+    config = OdometryConfig(cov_scale=2.0)
+    assert covariance_model(640, config) == (2.0, COV_CALIBRATION[640][1])
