@@ -410,3 +410,21 @@ def test_insert_ray_equals_per_key_updates_and_cuts_at_max_range():
     lv = cut.leaves()
     assert len(lv) > 0 and (lv.log_odds < 0).all()
     assert np.linalg.norm(lv.centers - o, axis=1).max() < 1.0 + 0.1
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.07, 0.1, 1 / 3, 0.25]),
+       st.sampled_from([-1.0, 0.0, 0.5, 2.0]), st.integers(1, 4))
+def test_random_scans_equal_liboctomap(seed, res, max_range, n_scans):
+    """Random clouds, origins off the voxel grid, odd resolutions, several max ranges."""
+    rng = np.random.default_rng(seed)
+    ref = octomap.OcTree(res)
+    tree = OcTree(res)
+    for _ in range(n_scans):
+        origin = rng.uniform(-1, 1, 3)
+        pts = (origin + rng.normal(scale=rng.uniform(0.2, 3), size=(rng.integers(1, 400), 3)))
+        pts = pts.astype(np.float32)
+        ref.insertPointCloud(pts.astype(np.float64), origin.astype(np.float32).astype(float),
+                             maxrange=max_range)
+        tree.insert_point_cloud(pts, origin, max_range=max_range)
+    assert tree.to_bytes_ot() == ref.write()
