@@ -194,6 +194,9 @@ def main(argv=None) -> int:
                             err = pose_error(T, T_gt)
                             rows[(method, acc, offset, size)].append(
                                 (err.d_se3, err.t_err_m, err.r_err_rad, seconds))
+                            print(f"  {method} acc={acc} {offset} N={size} view={view} "
+                                  f"d={err.d_se3:.4f} t={seconds:.3f}s", file=sys.stderr,
+                                  flush=True)
                 print(f"acc {acc:.0%} view {view} N={size} done", file=sys.stderr, flush=True)
     report(rows, accuracies, sizes)
     return 0

@@ -140,9 +140,9 @@ class EstimatorInfo:
 
 _BUILTINS = {
     # name -> "module:attribute" of a zero-argument factory (imported on first use)
-    "vp_ekf": ("filter", "estimation.vp_ekf:VPEKFEstimator"),
-    "gicp": ("registration", "estimation.registration:GICPRegistration"),
-    "semantic_icp": ("registration", "estimation.registration:SemanticICPRegistration"),
+    "vp_ekf": ("filter", "estimation.builtin_estimators:VPEKFEstimator"),
+    "gicp": ("registration", "estimation.builtin_estimators:GICPRegistration"),
+    "semantic_icp": ("registration", "estimation.builtin_estimators:SemanticICPRegistration"),
 }
 
 

@@ -95,13 +95,13 @@ def _registration_names() -> list[str]:
         return sorted(available_estimators("registration"))
 
 
-def _run_filter(estimator, scenario):
+def _run_filter(estimator, scenario, process_scale: float = 1.0):
     estimator.reset(scenario.x0, scenario.P0)
     nees_values = []
     for u, cov_u, z, R, truth in zip(scenario.controls, scenario.control_covs,
                                      scenario.measurements, scenario.measurement_covs,
                                      scenario.truths):
-        estimator.predict(u, cov_u)
+        estimator.predict(u, np.asarray(cov_u) * process_scale)
         if z is not None:
             estimator.update(z, R)
         error = estimator.error(truth)
@@ -113,15 +113,30 @@ def _run_filter(estimator, scenario):
     return np.array(nees_values)
 
 
+def _filter_nees(name: str, process_scale: float) -> tuple[np.ndarray, int]:
+    simulator = create_estimator(name, kind="filter")
+    runs = np.array([_run_filter(create_estimator(name, kind="filter"),
+                                 simulator.simulate(np.random.default_rng(seed), 30),
+                                 process_scale)
+                     for seed in range(100)])
+    return runs, len(simulator.simulate(np.random.default_rng(0), 2).x0)
+
+
 @pytest.mark.parametrize("name", _filter_names())
 def test_filter_contract_and_consistency(example_plugin_path, name):
-    estimator = create_estimator(name, kind="filter")
-    dim = len(estimator.simulate(np.random.default_rng(0), 5).x0)
-    runs = np.array([_run_filter(create_estimator(name, kind="filter"),
-                                 estimator.simulate(np.random.default_rng(seed), 30))
-                     for seed in range(50)])
+    """NEES over 100 seeded runs of the estimator's own scenario, per step, inside the 95 %
+    chi-square band on >= 80 % of the steps (steps of one run are correlated)."""
+    runs, dim = _filter_nees(name, 1.0)
     check = check_consistency(runs, dof=dim, min_fraction=0.8)
     assert check.passed, check
+
+
+@pytest.mark.parametrize("name", _filter_names())
+def test_filter_contract_negative_control_fails(example_plugin_path, name):
+    """The same check with the process noise given to the filter scaled by 0.05 must fail."""
+    runs, dim = _filter_nees(name, 0.05)
+    check = check_consistency(runs, dof=dim, min_fraction=0.8)
+    assert not check.passed, check
 
 
 @pytest.mark.parametrize("name", _registration_names())
