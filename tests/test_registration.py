@@ -111,6 +111,23 @@ def test_closed_form_regularisation_matches_eigh(rng):
     np.testing.assert_allclose(regularise_covariances(cov, 1e-3), expected, atol=1e-8)
 
 
+def test_neighbour_cache_is_exact(rng):
+    from scipy.spatial import cKDTree
+
+    from estimation.registration.correspondences import NeighbourCache
+
+    target = rng.uniform(0, 1, (3000, 3))
+    tree = cKDTree(target)
+    cache = NeighbourCache(tree, 8)
+    points = rng.uniform(0, 1, (500, 3))
+    for step in (0.0, 1e-3, 1e-2, 0.05, 0.3):  # small motions use the cache, large refresh
+        points = points + rng.normal(0, step, points.shape)
+        dist, idx = cache.query(points)
+        ref_dist, ref_idx = tree.query(points)
+        np.testing.assert_allclose(dist, ref_dist, rtol=1e-12)
+        np.testing.assert_array_equal(idx, ref_idx)
+
+
 def test_cauchy_weight_is_derivative_of_loss():
     e = np.linspace(0, 50, 11)
     h = 1e-6

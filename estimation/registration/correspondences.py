@@ -69,14 +69,63 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def nearest_correspondences(source_in_target: np.ndarray, target_tree: cKDTree,
-                            d_max: float) -> Correspondences:
-    """Return nearest-neighbour pairs closer than ``d_max`` (ICP's omega_i of eq. (2))."""
+                            d_max: float, cache: NeighbourCache | None = None
+                            ) -> Correspondences:
+    """Return nearest-neighbour pairs closer than ``d_max`` (ICP's omega_i of eq. (2)).
+
+    With a :class:`NeighbourCache` the (identical) neighbours come from cached candidates.
+    """
     n = len(source_in_target)
-    dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max,
-                                  workers=_workers(n))
+    if cache is not None:
+        dist, idx = cache.query(source_in_target)
+        dist = np.where(dist <= d_max, dist, np.inf)
+    else:
+        dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max,
+                                      workers=_workers(n))
     ok = np.isfinite(dist)
     src = np.nonzero(ok)[0]
     return Correspondences(src, idx[ok].astype(np.int64), np.ones(len(src)), dist[ok], n)
+
+
+class NeighbourCache:
+    """Exact nearest neighbours for slowly moving query points, from cached k-NN candidates.
+
+    Near convergence ICP moves the source by far less than the gap between a point's first
+    and k-th neighbour, so the nearest neighbour must be one of the k cached candidates:
+    a point that moved by delta since its candidates were found keeps an exact answer while
+    ``d_1 + delta <= d_k - delta``; only points that fail that test are queried again.
+    """
+
+    def __init__(self, tree: cKDTree, k: int = 8):
+        self.tree = tree
+        self.k = int(min(max(k, 2), tree.n))
+        self.anchor: np.ndarray | None = None
+        self.candidates: np.ndarray | None = None
+        self.gap: np.ndarray | None = None
+
+    def _refresh(self, points: np.ndarray, rows: np.ndarray | None) -> None:
+        sel = points if rows is None else points[rows]
+        dist, idx = self.tree.query(sel, k=self.k, workers=_workers(len(sel)))
+        gap = 0.5 * (dist[:, -1] - dist[:, 0])
+        if rows is None:
+            self.anchor, self.candidates, self.gap = sel.copy(), idx, gap
+        else:
+            self.anchor[rows], self.candidates[rows], self.gap[rows] = sel, idx, gap
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return (distance, index) of the exact nearest neighbour of every point."""
+        if self.anchor is None or len(self.anchor) != len(points):
+            self._refresh(points, None)
+        else:
+            moved = np.linalg.norm(points - self.anchor, axis=1)
+            stale = np.nonzero(~(moved <= self.gap))[0]
+            if len(stale):
+                self._refresh(points, stale)
+        cand = self.tree.data[self.candidates]                      # (N, k, 3)
+        d2 = np.sum((cand - points[:, None, :]) ** 2, axis=2)
+        best = d2.argmin(axis=1)
+        rows = np.arange(len(points))
+        return np.sqrt(d2[rows, best]), self.candidates[rows, best]
 
 
 class SemanticIndex:
