@@ -101,3 +101,86 @@ class VPEKFEstimator:
             truths.append(state(pose))
         return FilterScenario(x0, P0, controls, control_covs, measurements, measurement_covs,
                               truths, truth0)
+
+
+def _labelled_corner_scene(rng: np.random.Generator, n_points: int = 3000
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Points on a floor, three walls and a box (one class each) with 5 mm noise."""
+    n_classes = 5
+    labels = rng.integers(0, n_classes, n_points)
+    uv = rng.uniform(0.0, 1.0, (n_points, 2))
+    points = np.zeros((n_points, 3))
+    floor, wall_x, wall_y, wall_back, box = (labels == c for c in range(n_classes))
+    points[floor] = np.column_stack([4 * uv[floor, 0], 3 * uv[floor, 1], np.zeros(floor.sum())])
+    points[wall_x] = np.column_stack([np.zeros(wall_x.sum()), 3 * uv[wall_x, 0],
+                                      2.5 * uv[wall_x, 1]])
+    points[wall_y] = np.column_stack([4 * uv[wall_y, 0], np.zeros(wall_y.sum()),
+                                      2.5 * uv[wall_y, 1]])
+    points[wall_back] = np.column_stack([4 * uv[wall_back, 0], np.full(wall_back.sum(), 3.0),
+                                         2.5 * uv[wall_back, 1]])
+    points[box] = np.column_stack([1.5 + 0.6 * uv[box, 0], 1.0 + 0.6 * uv[box, 1],
+                                   np.full(box.sum(), 0.8)])
+    points += rng.normal(0.0, 0.005, points.shape)
+    probs = np.full((n_points, n_classes), 0.1 / (n_classes - 1))
+    probs[np.arange(n_points), labels] = 0.9
+    return points, probs
+
+
+def _registration_scenario(rng: np.random.Generator) -> RegistrationScenario:
+    import gtsam
+
+    target, target_probs = _labelled_corner_scene(rng)
+    source_world, source_probs = _labelled_corner_scene(rng)
+    T_target_source = gtsam.Pose3.Expmap(np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 0.2, 3)])
+    source = np.asarray([T_target_source.inverse().transformFrom(p) for p in source_world])
+    T_init = T_target_source.compose(
+        gtsam.Pose3.Expmap(np.r_[rng.normal(0, 0.02, 3), rng.normal(0, 0.05, 3)]))
+    return RegistrationScenario(source, target, T_target_source.matrix(), T_init.matrix(),
+                                {"source_probs": source_probs, "target_probs": target_probs})
+
+
+class GICPRegistration:
+    """GICP-SE(3) (eq. (3)) with a Cauchy kernel: :func:`estimation.registration.gicp_se3`.
+
+    ``options`` are :class:`estimation.registration.RegistrationConfig` fields; class
+    probabilities, if passed, are ignored (geometry only).
+    """
+
+    name = "gicp"
+    kind = "registration"
+
+    def register(self, source, target, T_init, **options):
+        from .registration import RegistrationConfig, gicp_se3
+
+        options.pop("source_probs", None)
+        options.pop("target_probs", None)
+        return gicp_se3(source, target, T_init, RegistrationConfig(**options))
+
+    def simulate(self, rng: np.random.Generator) -> RegistrationScenario:
+        return _registration_scenario(rng)
+
+
+class SemanticICPRegistration:
+    """Semantic-ICP (eq. (5)-(8)): :func:`estimation.registration.semantic_icp`.
+
+    Needs ``source_probs`` and ``target_probs`` (N x C class probabilities) in ``options``;
+    the other options are :class:`estimation.registration.RegistrationConfig` fields.
+    """
+
+    name = "semantic_icp"
+    kind = "registration"
+
+    def register(self, source, target, T_init, **options):
+        from .errors import EstimationError
+        from .registration import RegistrationConfig, semantic_icp
+
+        try:
+            source_probs = options.pop("source_probs")
+            target_probs = options.pop("target_probs")
+        except KeyError:
+            raise EstimationError("semantic_icp needs source_probs and target_probs") from None
+        return semantic_icp(source, source_probs, target, target_probs, T_init,
+                            RegistrationConfig(**options))
+
+    def simulate(self, rng: np.random.Generator) -> RegistrationScenario:
+        return _registration_scenario(rng)

@@ -55,6 +55,9 @@ def _common(parser, default_method: str) -> None:
     parser.add_argument("--semantic-weight", choices=("inside", "outside"), default="outside",
                         help="omega inside the Cauchy kernel (eq. (7)) or outside (Parkison)")
     parser.add_argument("--max-iterations", type=int, default=60, help="outer iterations (60)")
+    parser.add_argument("--estimator", metavar="NAME",
+                        help="a registration estimator from `octofactor plugins` (overrides "
+                        "--method; receives the clouds, --init and the class probabilities)")
     parser.add_argument("-o", "--output", metavar="RESULT.json", required=True)
 
 
@@ -77,6 +80,7 @@ def _load(path: str, method: str):
 
 
 def _register(args, source, target, flip=None) -> dict:
+    import numpy as np
 
     from estimation.covariance import nees
     from estimation.errors import OctofactorError
@@ -91,14 +95,30 @@ def _register(args, source, target, flip=None) -> dict:
         semantic_weight=args.semantic_weight, max_iterations=args.max_iterations)
     init = read_transform(args.init) if args.init else None
     semantic = args.method == "semantic"
-    reg = Registration(source.points, target.points, config,
-                       source.probs if semantic else None, target.probs if semantic else None)
-    result = reg.run(init)
+    if getattr(args, "estimator", None):
+        import time
+
+        from estimation.plugins import create_estimator
+
+        estimator = create_estimator(args.estimator, kind="registration")
+        start = time.perf_counter()
+        result = estimator.register(source.points, target.points,
+                                    np.eye(4) if init is None else init,
+                                    source_probs=source.probs, target_probs=target.probs)
+        elapsed = time.perf_counter() - start
+    else:
+        reg = Registration(source.points, target.points, config,
+                           source.probs if semantic else None, target.probs if semantic else None)
+        result = reg.run(init)
+        elapsed = result.time_s
     out = {
-        "method": result.method, "T": result.T.tolist(), "covariance": result.covariance.tolist(),
-        "converged": result.converged, "reason": result.reason,
-        "iterations": result.iterations, "inliers": result.inliers, "fitness": result.fitness,
-        "rmse": result.rmse, "time_s": result.time_s, "cost_log": list(result.cost_log),
+        "method": getattr(result, "method", getattr(args, "estimator", None)),
+        "T": np.asarray(result.T).tolist(), "covariance": np.asarray(result.covariance).tolist(),
+        "converged": bool(result.converged), "reason": getattr(result, "reason", ""),
+        "iterations": getattr(result, "iterations", None),
+        "inliers": getattr(result, "inliers", None), "fitness": getattr(result, "fitness", None),
+        "rmse": getattr(result, "rmse", None), "time_s": elapsed,
+        "cost_log": list(getattr(result, "cost_log", [])),
         "source_points": len(source), "target_points": len(target),
     }
     if flip is not None:

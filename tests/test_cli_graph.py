@@ -87,3 +87,17 @@ def test_demo_writes_pose_graph_outputs(tmp_path):
         assert (tmp_path / name).stat().st_size > 0
     assert summary.final_error < summary.initial_error
     assert summary.ate_optimized_m < summary.ate_initial_m
+
+
+@pytest.mark.slow
+def test_quick_demo_writes_every_stage(tmp_path):
+    from pipelines.cli import main as cli_main
+
+    assert cli_main(["demo", "--quick", "-o", str(tmp_path)]) == 0
+    report = (tmp_path / "report.md").read_text()
+    for heading in ("Pose graph", "VP-EKF SLAM", "Octree map", "calibration", "Consistency"):
+        assert heading in report
+    for name in ("pose_graph.png", "vpslam_comparison.png", "map_slice.png",
+                 "vpslam_with_vp/map.bt", "vpslam_with_vp/map.ot", "vpslam_with_vp/trajectory.txt",
+                 "report.json"):
+        assert (tmp_path / name).stat().st_size > 0

@@ -143,7 +143,8 @@ def test_filter_contract_negative_control_fails(example_plugin_path, name):
 def test_registration_contract(name):
     estimator = create_estimator(name, kind="registration")
     scenario = estimator.simulate(np.random.default_rng(0))
-    result = estimator.register(scenario.source, scenario.target, scenario.T_init)
+    result = estimator.register(scenario.source, scenario.target, scenario.T_init,
+                                **scenario.extra)
     assert result.converged
     T = np.asarray(result.T)
     assert T.shape == (4, 4)
