@@ -42,7 +42,7 @@ demo: setup
 	$(VENV)/bin/octofactor demo -o out
 
 test: setup
-	$(PY) -m pytest -q $(PYTEST_ARGS)
+	$(PY) -m pytest -q --nbmake tests notebooks $(PYTEST_ARGS)
 
 lint: setup
 	$(VENV)/bin/ruff check .

@@ -57,6 +57,12 @@ class VPEKFEstimator:
     def update(self, z, R) -> bool:
         return self._ekf.update_vp(np.asarray(z, dtype=float).reshape(2), R).status == "updated"
 
+    def slam_filter(self, K, T_world_camera, cov_pose, ekf_config):
+        """A fresh :class:`~estimation.vp_ekf.VanishingPointEKF` for the vpslam pipeline."""
+        from .vp_ekf import VanishingPointEKF
+
+        return VanishingPointEKF(K, T_world_camera, cov_pose, ekf_config)
+
     def error(self, x_true) -> np.ndarray:
         from .geometry import wrap_angle
 

@@ -44,6 +44,9 @@ class VpSlamConfig:
     build_map : False skips clouds and octree
     vo_scale : image scale for the RGB-D odometry only (0.5: a quarter of the pixels,
         about 4x faster and about 4x noisier increments; VP and map keep full resolution)
+    estimator : name of a registered filter estimator (``octofactor plugins``) whose
+        ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter this
+        pipeline steps (docs/plugins.md); the built-in is ``vp_ekf``
     """
 
     vp_model: str = "point"
@@ -57,6 +60,7 @@ class VpSlamConfig:
     backproject_stride: int = 2
     build_map: bool = True
     vo_scale: float = 1.0
+    estimator: str = "vp_ekf"
 
     def __post_init__(self):
         if self.vp_model not in ("point", "manhattan", "none"):
@@ -111,10 +115,16 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
     import gtsam
 
     from estimation import PoseGraph, Scan
-    from estimation.vp_ekf import VanishingPointEKF, VpEkfConfig
+    from estimation.plugins import create_estimator
+    from estimation.vp_ekf import VpEkfConfig
     from perception.odometry import rgbd_odometry
     from perception.rgbd import TumRgbdSequence, backproject, voxel_filter
 
+    estimator = create_estimator(config.estimator, kind="filter")
+    if not callable(getattr(estimator, "slam_filter", None)):
+        raise OctofactorError(
+            f"estimator {config.estimator!r} cannot run vpslam: it has no "
+            "slam_filter(K, T_world_camera, cov_pose, ekf_config) method (docs/plugins.md)")
     sequence = TumRgbdSequence(seq_dir, intrinsics=intrinsics)
     intr = sequence.intrinsics
     vo_intr, vo_frame = _vo_resampler(intr, config.vo_scale)
@@ -167,7 +177,7 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
         if ekf is None:
             T0 = frame.T_world_camera_gt  # paper convention when no GT: body at identity
             cov0 = np.diag([1e-6] * 3 + [1e-6] * 3)
-            ekf = VanishingPointEKF(K, T0, cov0, VpEkfConfig(
+            ekf = estimator.slam_filter(K, T0, cov0, VpEkfConfig(
                 vp_model="point" if config.vp_model == "none" else config.vp_model,
                 vp_distance=config.vp_distance, gate_chi2=config.gate_chi2,
                 vo_failure_sigma=config.vo_failure_sigma))
@@ -406,6 +416,7 @@ def _report(config, counts, skipped, timings, positions, positions_gt, map_note,
     report = {
         "frames": int(counts["frames"]),
         "vp_model": config.vp_model,
+        "estimator": config.estimator,
         "vp_detections": int(counts["vp_detections"]),
         "vp_updates": int(counts["vp_updates"]),
         "vp_gated": int(counts["vp_gated"]),

@@ -32,6 +32,8 @@ def register(add_command) -> None:
     parser.add_argument("--vo-scale", type=float, default=1.0,
                         help="image scale for the odometry only (0.5: ~4x faster, noisier)")
     parser.add_argument("--max-frames", type=int, default=None, help="use the first N frames")
+    parser.add_argument("--estimator", default="vp_ekf", metavar="NAME",
+                        help="filter estimator from `octofactor plugins` (vp_ekf)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
@@ -61,7 +63,7 @@ def run(args) -> int:
     config = VpSlamConfig(vp_model="none" if args.no_vp else args.vp_model,
                           vp_distance=args.vp_distance, map_resolution=args.resolution,
                           max_range=args.max_range, build_map=not args.no_map,
-                          vo_scale=args.vo_scale)
+                          vo_scale=args.vo_scale, estimator=args.estimator)
     if args.gate is not None:
         if not args.gate > 0:
             raise OctofactorError(f"--gate must be positive, got {args.gate}")

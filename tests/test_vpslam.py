@@ -139,3 +139,11 @@ def test_half_resolution_odometry(corridor, tmp_path):
     assert report["frames"] == 6
     assert not any(k.startswith("vo:") for k in report["skipped_updates"])
     assert report["ate_rmse_m"] < 0.05
+
+
+def test_vpslam_rejects_an_estimator_that_cannot_run_it(tmp_path):
+    from estimation.errors import OctofactorError
+    from pipelines.vpslam import VpSlamConfig, run_vpslam
+
+    with pytest.raises(OctofactorError, match="unknown filter estimator 'nope'"):
+        run_vpslam(tmp_path, None, VpSlamConfig(estimator="nope"), progress=False)
