@@ -32,6 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimation.registration import Registration, RegistrationConfig, pose_error  # noqa: E402
+from estimation.registration.metrics import offset_about_centroid  # noqa: E402
 from perception.simulation.room import (  # noqa: E402
     VIEWPOINTS,
     RoomConfig,
@@ -42,17 +43,6 @@ from perception.simulation.room import (  # noqa: E402
 
 OFFSETS = {"small": (0.2, 8.0, 0.5), "wide": (1.0, 40.0, 1.0)}  # m, deg, initial d_max
 D_FINAL = 0.2
-
-
-def perturbation(rng, centroid, metres, degrees) -> np.ndarray:
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    shift = rng.normal(size=3)
-    shift *= metres / np.linalg.norm(shift)
-    D = gtsam.Pose3(gtsam.Rot3.Rodrigues(axis * np.deg2rad(degrees)), shift).matrix()
-    C = np.eye(4)
-    C[:3, 3] = centroid
-    return C @ D @ np.linalg.inv(C)
 
 
 def run_ours(src, tgt, init, d0, semantic):
@@ -185,8 +175,9 @@ def main(argv=None) -> int:
                     warm = True
                 for offset, (metres, degrees, d0) in OFFSETS.items():
                     for trial in range(trials):
-                        init = T_gt @ perturbation(np.random.default_rng(1000 * trial + size),
-                                                   src.points.mean(axis=0), metres, degrees)
+                        init = T_gt @ offset_about_centroid(
+                            np.random.default_rng(1000 * trial + size), src.points.mean(axis=0),
+                            metres, degrees)
                         for method, fn in METHODS.items():
                             if method in GEOMETRIC and acc != accuracies[0]:
                                 continue  # labels do not change geometry-only methods

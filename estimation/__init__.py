@@ -5,26 +5,12 @@ every CLI module does -- pulls in neither GTSAM nor SciPy.
 """
 from __future__ import annotations
 
-import importlib
+from .lazy import lazy_exports
 
-_EXPORTS = {
-    "PoseGraph": "pose_graph", "Node": "pose_graph", "Scan": "pose_graph",
-    "FactorRecord": "pose_graph", "OptimizeResult": "pose_graph", "node_key": "pose_graph",
-    "OctofactorError": "errors", "FormatError": "errors", "EstimationError": "errors",
-    "nees": "covariance", "nis": "covariance", "chi2_bounds": "covariance",
-    "check_consistency": "covariance", "ConsistencyCheck": "covariance",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name: str):
-    if name in _EXPORTS:
-        value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'estimation' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(list(globals()) + __all__)
+__all__, __getattr__, __dir__ = lazy_exports(__name__, {
+    "estimation.pose_graph": ("PoseGraph", "Node", "Scan", "FactorRecord", "OptimizeResult",
+                              "node_key"),
+    "estimation.errors": ("OctofactorError", "FormatError", "EstimationError"),
+    "estimation.covariance": ("nees", "nis", "chi2_bounds", "check_consistency",
+                              "ConsistencyCheck"),
+})

@@ -228,3 +228,30 @@ def create_estimator(name: str, kind: str | None = None) -> Any:
         what = f"{kind} estimator" if kind else "estimator"
         raise OctofactorError(f"unknown {what} {name!r}; installed: {known}")
     return estimators[name].factory()
+
+
+def filter_nees(estimator: RecursiveFilter, scenario: FilterScenario,
+                process_scale: float = 1.0) -> np.ndarray:
+    """Run ``estimator`` over ``scenario``; return the NEES after each step.
+
+    ``process_scale`` multiplies the control covariance given to the filter (0.05 makes
+    the negative control of the contract suite). Raises ``AssertionError`` when the
+    contract breaks: a non-finite state, or P not symmetric positive definite.
+    """
+    estimator.reset(scenario.x0, scenario.P0)
+    values = []
+    for u, cov_u, z, R, truth in zip(scenario.controls, scenario.control_covs,
+                                     scenario.measurements, scenario.measurement_covs,
+                                     scenario.truths):
+        estimator.predict(u, np.asarray(cov_u) * process_scale)
+        if z is not None:
+            estimator.update(z, R)
+        P = estimator.P
+        if not np.all(np.isfinite(estimator.x)):
+            raise AssertionError(f"{estimator.name}: non-finite state")
+        if not np.allclose(P, P.T, atol=1e-9):
+            raise AssertionError(f"{estimator.name}: P is not symmetric")
+        np.linalg.cholesky(P)  # raises LinAlgError when P is not positive definite
+        error = estimator.error(truth)
+        values.append(float(error @ np.linalg.solve(P, error)))
+    return np.array(values)

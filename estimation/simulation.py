@@ -76,3 +76,23 @@ def pose_errors(graph: PoseGraph, truth: list[gtsam.Pose3]) -> np.ndarray:
     Order [rotation, translation], matching :meth:`PoseGraph.marginal_covariance`.
     """
     return np.array([graph.nodes[i].pose.localCoordinates(truth[i]) for i in graph.sorted_ids()])
+
+
+def loop_graph_joint_nees(seed: int, n_poses: int = 10, model_scale: float = 1.0) -> float:
+    """Joint NEES (dof 6 x n_poses) of one simulated loop after Levenberg-Marquardt.
+
+    Errors are ``localCoordinates`` (tangent [rotation, translation] at the estimate) and the
+    covariance is GTSAM's joint marginal of all nodes, so correlations along the loop count.
+    """
+    from .pose_graph import node_key
+
+    sim = simulate_loop_graph(np.random.default_rng(seed), n_poses=n_poses,
+                              model_scale=model_scale)
+    sim.graph.optimize("lm")
+    errors = pose_errors(sim.graph, sim.truth).reshape(-1)
+    keys = gtsam.KeyVector()
+    for node_id in sim.graph.sorted_ids():
+        keys.append(node_key(node_id))
+    joint = gtsam.Marginals(sim.graph.graph(), sim.graph.values()).jointMarginalCovariance(
+        keys).fullMatrix()
+    return float(errors @ np.linalg.solve(joint, errors))

@@ -141,28 +141,13 @@ def _plot_map_slice(tree, path: Path) -> None:
     save_height_slice(tree, path)
 
 
-def wide_offset(rng: np.random.Generator, centroid: np.ndarray, metres: float = 1.0,
-                degrees: float = 40.0) -> np.ndarray:
-    """A 4x4 perturbation: rotate ``degrees`` about a random axis through ``centroid``, then
-    shift ``metres`` in a random direction (the benchmark's "wide" initial offset)."""
-    import gtsam
-
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    shift = rng.normal(size=3)
-    shift *= metres / np.linalg.norm(shift)
-    D = gtsam.Pose3(gtsam.Rot3.Rodrigues(axis * np.deg2rad(degrees)), shift).matrix()
-    C = np.eye(4)
-    C[:3, 3] = centroid
-    return C @ D @ np.linalg.inv(C)
-
-
 def calibration_demo(out_dir: Path, quick: bool = False) -> dict:
     """Simulate the room; calibrate each headset view with GICP-SE(3) and Semantic-ICP
     from a wide initial offset (1.0 m / 40 deg about the cloud's centroid)."""
     from tqdm import tqdm
 
     from estimation.registration import RegistrationConfig, pose_error, register
+    from estimation.registration.metrics import offset_about_centroid
     from perception.semantic_cloud import SemanticCloud
     from perception.simulation.room import RoomConfig, simulate_room
 
@@ -180,8 +165,8 @@ def calibration_demo(out_dir: Path, quick: bool = False) -> dict:
         headset = SemanticCloud.read_ply(written[f"headset_{view}"])
         T_gt = np.loadtxt(written[f"T_map_headset_{view}"])
         if view not in inits:  # both methods start from the same guess
-            centroid = headset.points.mean(axis=0) @ T_gt[:3, :3].T + T_gt[:3, 3]
-            inits[view] = wide_offset(rng, centroid) @ T_gt
+            inits[view] = T_gt @ offset_about_centroid(rng, headset.points.mean(axis=0),
+                                                       1.0, 40.0)
         semantic = method == "semantic"
         result = register(headset.points, robot_map.points, inits[view], config,
                           headset.probs if semantic else None,
@@ -201,40 +186,16 @@ SUCCESS_D_SE3 = 0.1  # a calibration counts as a success below this d_SE(3)
 
 def consistency_demo(quick: bool = False) -> dict:
     """Mean NEES with its 95 % chi-square band for the pose graph and the VP-EKF."""
-    import gtsam
-
     from estimation.builtin_estimators import VPEKFEstimator
     from estimation.covariance import check_consistency
-    from estimation.pose_graph import node_key
-    from estimation.simulation import pose_errors, simulate_loop_graph
+    from estimation.plugins import filter_nees
+    from estimation.simulation import loop_graph_joint_nees
 
     n_runs = 30 if quick else 100
-    values = []
-    for seed in range(n_runs):
-        sim = simulate_loop_graph(np.random.default_rng(1000 + seed), n_poses=10)
-        sim.graph.optimize("lm")
-        errors = pose_errors(sim.graph, sim.truth).reshape(-1)
-        keys = gtsam.KeyVector()
-        for node_id in sim.graph.sorted_ids():
-            keys.append(node_key(node_id))
-        joint = gtsam.Marginals(sim.graph.graph(), sim.graph.values()).jointMarginalCovariance(
-            keys).fullMatrix()
-        values.append(errors @ np.linalg.solve(joint, errors))
+    values = [loop_graph_joint_nees(1000 + seed, 10) for seed in range(n_runs)]
     graph_check = check_consistency(np.array(values), dof=60)
-    ekf_runs = []
-    for seed in range(n_runs):
-        estimator = VPEKFEstimator()
-        scenario = estimator.simulate(np.random.default_rng(seed), 30)
-        estimator.reset(scenario.x0, scenario.P0)
-        row = []
-        for u, cov_u, z, R, truth in zip(scenario.controls, scenario.control_covs,
-                                         scenario.measurements, scenario.measurement_covs,
-                                         scenario.truths):
-            estimator.predict(u, cov_u)
-            estimator.update(z, R)
-            error = estimator.error(truth)
-            row.append(error @ np.linalg.solve(estimator.P, error))
-        ekf_runs.append(row)
+    ekf_runs = [filter_nees(VPEKFEstimator(), VPEKFEstimator().simulate(
+        np.random.default_rng(seed), 30)) for seed in range(n_runs)]
     ekf_check = check_consistency(np.array(ekf_runs), dof=9, min_fraction=0.8)
     return {
         "pose_graph": {"runs": n_runs, "dof": 60, "mean_nees": graph_check.mean,

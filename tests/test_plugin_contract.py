@@ -20,6 +20,7 @@ from estimation.plugins import (
     PluginWarning,
     available_estimators,
     create_estimator,
+    filter_nees,
     validate,
 )
 
@@ -95,27 +96,9 @@ def _registration_names() -> list[str]:
         return sorted(available_estimators("registration"))
 
 
-def _run_filter(estimator, scenario, process_scale: float = 1.0):
-    estimator.reset(scenario.x0, scenario.P0)
-    nees_values = []
-    for u, cov_u, z, R, truth in zip(scenario.controls, scenario.control_covs,
-                                     scenario.measurements, scenario.measurement_covs,
-                                     scenario.truths):
-        estimator.predict(u, np.asarray(cov_u) * process_scale)
-        if z is not None:
-            estimator.update(z, R)
-        error = estimator.error(truth)
-        nees_values.append(error @ np.linalg.solve(estimator.P, error))
-        # contract: P stays symmetric positive definite, x finite
-        assert np.all(np.isfinite(estimator.x))
-        np.testing.assert_allclose(estimator.P, estimator.P.T, atol=1e-9)
-        np.linalg.cholesky(estimator.P)
-    return np.array(nees_values)
-
-
 def _filter_nees(name: str, process_scale: float) -> tuple[np.ndarray, int]:
     simulator = create_estimator(name, kind="filter")
-    runs = np.array([_run_filter(create_estimator(name, kind="filter"),
+    runs = np.array([filter_nees(create_estimator(name, kind="filter"),
                                  simulator.simulate(np.random.default_rng(seed), 30),
                                  process_scale)
                      for seed in range(100)])

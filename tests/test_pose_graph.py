@@ -5,8 +5,8 @@ import gtsam
 import numpy as np
 import pytest
 
-from estimation import EstimationError, PoseGraph, check_consistency, node_key
-from estimation.simulation import pose_errors, simulate_loop_graph
+from estimation import EstimationError, PoseGraph, check_consistency
+from estimation.simulation import loop_graph_joint_nees, simulate_loop_graph
 
 
 def _pose(x=0.0, y=0.0, z=0.0, yaw=0.0, pitch=0.0, roll=0.0) -> gtsam.Pose3:
@@ -114,24 +114,9 @@ N_POSES = 10
 
 
 def _loop_nees(n_runs: int, model_scale: float) -> np.ndarray:
-    """Per run, the joint NEES of all node estimates (dof 6 x N_POSES) after LM.
-
-    Errors are ``localCoordinates`` (tangent [rotation, translation] at the estimate) and
-    the covariance is the joint marginal, so correlations along the loop count.
-    """
-    values = []
-    for seed in range(n_runs):
-        sim = simulate_loop_graph(np.random.default_rng(1000 + seed), n_poses=N_POSES,
-                                  model_scale=model_scale)
-        sim.graph.optimize("lm")
-        errors = pose_errors(sim.graph, sim.truth).reshape(-1)
-        keys = gtsam.KeyVector()
-        for node_id in sim.graph.sorted_ids():
-            keys.append(node_key(node_id))
-        joint = gtsam.Marginals(sim.graph.graph(), sim.graph.values()).jointMarginalCovariance(
-            keys).fullMatrix()
-        values.append(errors @ np.linalg.solve(joint, errors))
-    return np.array(values)
+    """Per run, the joint NEES of all node estimates (dof 6 x N_POSES) after LM."""
+    return np.array([loop_graph_joint_nees(1000 + seed, N_POSES, model_scale)
+                     for seed in range(n_runs)])
 
 
 def test_pose_graph_nees_is_consistent():

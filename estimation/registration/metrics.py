@@ -38,3 +38,21 @@ def pose_error(T_est: np.ndarray | gtsam.Pose3, T_gt: np.ndarray | gtsam.Pose3) 
     return PoseError(d, float(np.linalg.norm(rel.translation())),
                      float(np.linalg.norm(gtsam.Rot3.Logmap(rel.rotation()))),
                      np.asarray(est.localCoordinates(gt)))
+
+
+def offset_about_centroid(rng: np.random.Generator, centroid: np.ndarray, metres: float,
+                          degrees: float) -> np.ndarray:
+    """A 4x4 test offset: rotate ``degrees`` about a random axis through ``centroid``, then
+    shift ``metres`` in a random direction.
+
+    ``T_gt @ offset_about_centroid(rng, source.mean(0), 1.0, 40.0)`` is the benchmarks'
+    "wide" initial guess (0.2 m / 8 deg is "small").
+    """
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    shift = rng.normal(size=3)
+    shift *= metres / np.linalg.norm(shift)
+    D = gtsam.Pose3(gtsam.Rot3.Rodrigues(axis * np.deg2rad(degrees)), shift).matrix()
+    C = np.eye(4)
+    C[:3, 3] = centroid
+    return C @ D @ np.linalg.inv(C)
