@@ -3,6 +3,9 @@
 Prints medians of repeats and the ratio ours/liboctomap (throughput) for: insertion of scan.dat
 (88k points, one scan) at 0.1 and 0.05 m, a synthetic corridor of 50 scans x 100k points as the
 map grows, batched search, batched cast_ray, leaf traversal, memory, and .bt/.ot read/write.
+Every timed row gives two ratios: by CPU time (process time, summed over threads) and by wall
+time. liboctomap (the Debian / PyPI octomap-python build) is single-threaded; our insertion marks
+the rays of a scan on numba's thread count (NUMBA_NUM_THREADS), everything else is one thread.
 
     .venv/bin/python benchmarks/octree.py [--quick] [--repeats N]
 """
@@ -26,21 +29,34 @@ import octomap  # noqa: E402
 from mapping import OcTree  # noqa: E402
 
 
-def median_time(fn, repeats: int) -> float:
-    """Median CPU time of ``fn`` (process time: both sides are single-threaded, and CPU time is
-    far less disturbed than wall time on a loaded machine)."""
-    times = []
+def median_time(fn, repeats: int) -> tuple[float, float]:
+    """(median CPU time, median wall time) of ``fn`` over ``repeats`` runs.
+
+    CPU time is process time summed over all threads (far less disturbed than wall time on a
+    loaded machine); wall time shows what several threads buy.
+    """
+    cpu, wall = [], []
     for _ in range(repeats):
-        t0 = time.process_time()
+        c0, w0 = time.process_time(), time.perf_counter()
         fn()
-        times.append(time.process_time() - t0)
-    return statistics.median(times)
+        cpu.append(time.process_time() - c0)
+        wall.append(time.perf_counter() - w0)
+    return statistics.median(cpu), statistics.median(wall)
 
 
 def row(name: str, ours: float, ref: float, unit: str, higher_is_better: bool = True) -> None:
     ratio = ours / ref if higher_is_better else ref / ours
     print(f"{name:<46} ours {ours:>12.4g} {unit:<8} liboctomap {ref:>12.4g} {unit:<8} "
           f"ratio {ratio:7.2f}x")
+
+
+def trow(name: str, work_ours: float, t_ours: tuple[float, float], work_ref: float,
+         t_ref: tuple[float, float], unit: str, scale: float = 1.0) -> None:
+    """Throughputs ``work / CPU time / scale`` of both sides and the ratios by CPU and wall."""
+    ours, ref = work_ours / t_ours[0] / scale, work_ref / t_ref[0] / scale
+    wall = (work_ours / t_ours[1]) / (work_ref / t_ref[1])
+    print(f"{name:<42} ours {ours:>10.4g} {unit:<7} liboctomap {ref:>10.4g} {unit:<7} "
+          f"ratio CPU {ours / ref:6.2f}x  wall {wall:6.2f}x")
 
 
 def corridor_scans(n_scans: int, n_points: int, seed: int = 0):
@@ -87,8 +103,13 @@ def main() -> int:
     w.leaves()
     w.to_bytes_bt()
 
-    print(f"# mapping.OcTree vs liboctomap (octomap-python), median CPU time of {repeats} "
-          "repeats (liboctomap: fewer repeats where it is slow)")
+    from numba import get_num_threads
+
+    print(f"# mapping.OcTree vs liboctomap (octomap-python), medians of {repeats} repeats "
+          "(liboctomap: 1 run for the corridor and the per-call queries)")
+    print("# throughputs by CPU time (summed over threads); ratios by CPU time and by wall time")
+    print(f"# liboctomap (Debian/PyPI build) is single-threaded; our insertion marks rays on "
+          f"{get_num_threads()} thread(s) (numba's default, NUMBA_NUM_THREADS), all else 1 thread")
     print("## insertion, scan.dat (88,206 points, one scan from the origin)")
     for res, max_range in ((0.1, -1.0), (0.1, 10.0), (0.05, 10.0), (0.05, -1.0)):
         t_ours = median_time(
@@ -96,9 +117,9 @@ def main() -> int:
             repeats)
         t_ref = median_time(
             lambda res=res, mr=max_range: octomap.OcTree(res).insertPointCloud(
-                scan64, zero, maxrange=mr), max(1, repeats // 2))
-        row(f"insert scan.dat res {res} max_range {max_range:g}", len(scan) / t_ours / 1e6,
-            len(scan) / t_ref / 1e6, "Mpts/s")
+                scan64, zero, maxrange=mr), repeats)
+        trow(f"insert scan.dat res {res} max_range {max_range:g}", len(scan), t_ours,
+             len(scan), t_ref, "Mpts/s", 1e6)
 
     n_scans, n_pts = (10, 20_000) if args.quick else (50, 100_000)
     scans = corridor_scans(n_scans, n_pts)
@@ -119,8 +140,8 @@ def main() -> int:
         t_ours = median_time(ours, max(1, repeats // 2))
         t_ref = median_time(ref, 1)
         total = n_scans * n_pts
-        row(f"insert corridor res {res} max_range 10", total / t_ours / 1e6,
-            total / t_ref / 1e6, "Mpts/s")
+        trow(f"insert corridor res {res} max_range 10", total, t_ours, total, t_ref, "Mpts/s",
+             1e6)
 
     tree = OcTree(0.05)
     tree.insert_point_cloud(scan, zero, 10.0)
@@ -139,8 +160,7 @@ def main() -> int:
                 pass
 
     t_ref = median_time(ref_search, 1)
-    row("search (batched, ours) vs per call", len(q) / t_ours / 1e6,
-        len(q_small) / t_ref / 1e6, "Mq/s")
+    trow("search (batched, ours) vs per call", len(q), t_ours, len(q_small), t_ref, "Mq/s", 1e6)
 
     n_rays = 100_000
     dirs = rng.normal(size=(n_rays, 3))
@@ -153,7 +173,7 @@ def main() -> int:
             ref_tree.castRay(zero, d, end, True, 15.0)
 
     t_ref = median_time(ref_rays, 1)
-    row("cast_ray (batched) vs per call", n_rays / t_ours / 1e3, 5000 / t_ref / 1e3, "krays/s")
+    trow("cast_ray (batched) vs per call", n_rays, t_ours, 5000, t_ref, "krays/s", 1e3)
 
     def ours_leaves():
         tree._cache = None
@@ -169,8 +189,8 @@ def main() -> int:
     t_ours = median_time(ours_leaves, repeats)
     t_ref = median_time(ref_leaves, 1)
     n_leaves = tree.num_leaf_nodes()
-    row("leaf traversal (arrays vs iterator)", n_leaves / t_ours / 1e6, n_leaves / t_ref / 1e6,
-        "Mleaf/s")
+    trow("leaf traversal (arrays vs iterator)", n_leaves, t_ours, n_leaves, t_ref, "Mleaf/s",
+         1e6)
 
     print("## memory (ratio = liboctomap memoryUsage / ours allocated)")
     grown = OcTree(0.05)
@@ -193,18 +213,18 @@ def main() -> int:
         rg.readBinary(str(geb).encode())
         t_ours = median_time(lambda: OcTree.read(geb), repeats)
         t_ref = median_time(lambda: octomap.OcTree(0.1).readBinary(str(geb).encode()), repeats)
-        row(".bt read", 1 / t_ours, 1 / t_ref, "files/s")
+        trow(".bt read", 1, t_ours, 1, t_ref, "files/s")
         out = Path(tmp) / "g.bt"
         t_ours = median_time(lambda: g.write_bt(out), repeats)
         t_ref = median_time(lambda: rg.writeBinary(str(out).encode()), repeats)
-        row(".bt write", 1 / t_ours, 1 / t_ref, "files/s")
+        trow(".bt write", 1, t_ours, 1, t_ref, "files/s")
         out = Path(tmp) / "g.ot"
         t_ours = median_time(lambda: g.write_ot(out), repeats)
         t_ref = median_time(lambda: rg.write(str(out).encode()), repeats)
-        row(".ot write", 1 / t_ours, 1 / t_ref, "files/s")
+        trow(".ot write", 1, t_ours, 1, t_ref, "files/s")
         t_ours = median_time(lambda: OcTree.read(out), repeats)
         t_ref = median_time(lambda: octomap.OcTree.read(str(out).encode()), repeats)
-        row(".ot read", 1 / t_ours, 1 / t_ref, "files/s")
+        trow(".ot read", 1, t_ours, 1, t_ref, "files/s")
     return 0
 
 

@@ -224,9 +224,12 @@ def _brick_find(tab_keys, tab_vals, bcode, mask):
 
 @njit(cache=True)
 def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, pool, bcodes,
-               counters):
+               nbr, counters):
     """Mark the free cells (1) and hit cells (2) of rays i0.. into bricks.
 
+    ``nbr[6 * b + face]`` caches the brick next to brick ``b`` across ``face`` (2 * axis + 1 for
+    the + side; -1 = not looked up yet): a ray changes brick every few steps, and rays of one
+    scan cross the same brick faces again and again, so this replaces most hash look-ups.
     counters = [n_bricks, n_nonfinite, n_out_of_bounds, n_failed]. Returns the index of the
     ray that found no room for a new brick (the caller grows the arrays and calls again: marking
     is idempotent, so re-walking that ray is harmless), or the number of points when done.
@@ -285,11 +288,18 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
         end_ok = k1[0] >= 0 and k1[1] >= 0 and k1[2] >= 0
         ray_ok = end_ok and ok0[0] >= 0 and ok0[1] >= 0 and ok0[2] >= 0
         if ray_ok and not (ok0[0] == k1[0] and ok0[1] == k1[1] and ok0[2] == k1[2]):
-            rdx = np.float32(ex - ox)
-            rdy = np.float32(ey - oy)
-            rdz = np.float32(ez - oz)
-            nsq = np.float32(np.float32(rdx * rdx + rdy * rdy) + rdz * rdz)
-            length = np.float32(math.sqrt(np.float64(nsq)))
+            if hit:
+                # the ray ends at the point: same differences and norm as computed above
+                rdx = ddx
+                rdy = ddy
+                rdz = ddz
+                length = np.float32(nrm)
+            else:
+                rdx = np.float32(ex - ox)
+                rdy = np.float32(ey - oy)
+                rdz = np.float32(ez - oz)
+                nsq = np.float32(np.float32(rdx * rdx + rdy * rdy) + rdz * rdz)
+                length = np.float32(math.sqrt(np.float64(nsq)))
             kx = ok0[0]
             ky = ok0[1]
             kz = ok0[2]
@@ -302,6 +312,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
             lend = np.float64(length)
             # brick-local coordinates; a step that leaves 0..7 on its axis changes brick
             need_brick = True
+            face = -1
             base = 0
             lx = kx & 7
             ly = ky & 7
@@ -311,7 +322,12 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                     bx = kx >> 3
                     by = ky >> 3
                     bz = kz >> 3
-                    if o_idx >= 0 and bx == obx and by == oby and bz == obz:
+                    idx = -1
+                    if face >= 0:
+                        idx = nbr[c_idx * 6 + face]
+                    if idx >= 0:
+                        pass
+                    elif o_idx >= 0 and bx == obx and by == oby and bz == obz:
                         idx = o_idx
                     else:
                         bc = morton(bx, by, bz)
@@ -327,6 +343,9 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                             tab_vals[h] = idx
                         if bx == obx and by == oby and bz == obz:
                             o_idx = idx
+                    if face >= 0:
+                        nbr[c_idx * 6 + face] = idx
+                        nbr[idx * 6 + (face ^ 1)] = c_idx
                     cbx = bx
                     cby = by
                     cbz = bz
@@ -345,6 +364,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                         if lx & ~7:
                             lx &= 7
                             need_brick = True
+                            face = 1 if sx > 0 else 0
                     else:
                         kz = (kz + sz) & 0xFFFF
                         tz += dtz
@@ -352,6 +372,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                         if lz & ~7:
                             lz &= 7
                             need_brick = True
+                            face = 5 if sz > 0 else 4
                 else:
                     if ty < tz:
                         ky = (ky + sy) & 0xFFFF
@@ -360,6 +381,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                         if ly & ~7:
                             ly &= 7
                             need_brick = True
+                            face = 3 if sy > 0 else 2
                     else:
                         kz = (kz + sz) & 0xFFFF
                         tz += dtz
@@ -367,6 +389,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
                         if lz & ~7:
                             lz &= 7
                             need_brick = True
+                            face = 5 if sz > 0 else 4
                 if kx == ex_k and ky == ey_k and kz == ez_k:
                     break
                 if tx > lend and ty > lend and tz > lend:
@@ -401,21 +424,75 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
     return n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
+def sort_rays(points, res):
+    """The points reordered by the Morton code of their endpoint key (coarsened to 16 bits).
+
+    Rays that end close together walk mostly the same bricks; marking them one after the other
+    keeps those bricks in cache (the synthetic corridor, whose points come in random directions,
+    marks up to twice as fast). The key sets are a union over the rays, so any order gives the
+    same result. Keys are taken relative to their minimum (absolute keys straddle 32768, where
+    every Morton bit flips). Counting sort: O(n + 65536).
+    """
+    n = points.shape[0]
+    out = np.empty_like(points)
+    if n == 0:
+        return out
+    rf = 1.0 / res
+    keys = np.empty((n, 3), np.int64)
+    lo = np.full(3, 65536, np.int64)
+    for i in range(n):
+        for a in range(3):
+            kk = _key_checked(points[i, a], rf)
+            keys[i, a] = kk
+            if kk >= 0 and kk < lo[a]:
+                lo[a] = kk
+    codes = np.empty(n, np.uint64)
+    hi = np.uint64(0)
+    for i in range(n):
+        c = np.uint64(0)
+        if keys[i, 0] >= 0 and keys[i, 1] >= 0 and keys[i, 2] >= 0:
+            c = morton(keys[i, 0] - lo[0], keys[i, 1] - lo[1], keys[i, 2] - lo[2])
+        codes[i] = c
+        if c > hi:
+            hi = c
+    shift = np.uint64(0)
+    while (hi >> shift) >= np.uint64(1 << 32):
+        shift += np.uint64(1)
+    # LSD radix sort of the 32-bit coarsened codes: two stable passes of 16 bits
+    order = np.arange(n)
+    tmp = np.empty(n, np.int64)
+    for p in range(2):
+        sh = shift + np.uint64(16 * p)
+        start = np.zeros(65537, np.int64)
+        for i in range(n):
+            start[np.int64((codes[i] >> sh) & np.uint64(0xFFFF)) + 1] += 1
+        for b in range(65536):
+            start[b + 1] += start[b]
+        for t in range(n):
+            i = order[t]
+            b = np.int64((codes[i] >> sh) & np.uint64(0xFFFF))
+            tmp[start[b]] = i
+            start[b] += 1
+        order, tmp = tmp, order
+    for j in range(n):
+        i = order[j]
+        out[j, 0] = points[i, 0]
+        out[j, 1] = points[i, 1]
+        out[j, 2] = points[i, 2]
+    return out
+
+
+@njit(cache=True, nogil=True)
 def scan_key_sets(points, origin, res, max_range, discretize):
     """Free and occupied keys of one scan (computeUpdate), as sorted Morton codes.
 
     Returns (codes uint64 sorted, is_hit bool, n_nonfinite, n_out_of_bounds, n_rays_failed).
+    This is :func:`scan_marks` of all rays, then :func:`emit_marks`; ``OcTree.insert_point_cloud``
+    instead marks chunks of rays on several threads and unites them with :func:`unite_marks`.
     """
     rf = 1.0 / res
     n = points.shape[0]
-    ox = np.float32(origin[0])
-    oy = np.float32(origin[1])
-    oz = np.float32(origin[2])
-    ok0 = np.empty(3, np.int64)
-    ok0[0] = _key_checked(ox, rf)
-    ok0[1] = _key_checked(oy, rf)
-    ok0[2] = _key_checked(oz, rf)
     counters = np.zeros(4, np.int64)
 
     # discretize: unique voxel centres of the endpoints (a set of keys: order does not matter)
@@ -446,16 +523,41 @@ def scan_key_sets(points, origin, res, max_range, discretize):
                 pts[i, a] = np.float32(_key_to_coord(ks[i, a], res))
         n = pts.shape[0]
 
+    tab_keys, tab_vals, pool, bcodes, nb, counters2 = scan_marks(pts, origin, res, max_range)
+    codes, is_hit = emit_marks(pool, bcodes, nb)
+    return (codes, is_hit, counters[1] + counters2[1], counters[2] + counters2[2],
+            counters[3] + counters2[3])
+
+
+@njit(cache=True, nogil=True)
+def scan_marks(pts, origin, res, max_range):
+    """Free/hit marks of the rays ``pts`` from ``origin`` in bricks (no discretisation).
+
+    Returns (tab_keys, tab_vals, pool, bcodes, n_bricks, counters): the brick hash table, the
+    marks (``pool[512 * b + cell]``: bit 0 free, bit 1 hit), the brick Morton codes and
+    counters [n_bricks, n_nonfinite, n_out_of_bounds, n_failed]. Releases the GIL.
+    """
+    rf = 1.0 / res
+    n = pts.shape[0]
+    ox = np.float32(origin[0])
+    oy = np.float32(origin[1])
+    oz = np.float32(origin[2])
+    ok0 = np.empty(3, np.int64)
+    ok0[0] = _key_checked(ox, rf)
+    ok0[1] = _key_checked(oy, rf)
+    ok0[2] = _key_checked(oz, rf)
+    counters = np.zeros(4, np.int64)
     cap = 1 << 12
     tab_keys = np.full(cap, _EMPTY, np.uint64)
     tab_vals = np.empty(cap, np.int64)
     pool_cap = 1024
     pool = np.zeros(pool_cap * 512, np.uint8)
     bcodes = np.empty(pool_cap, np.uint64)
+    nbr = np.full(pool_cap * 6, -1, np.int64)
     i = 0
     while True:
         i = _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i, tab_keys, tab_vals, pool,
-                       bcodes, counters)
+                       bcodes, nbr, counters)
         if i >= n:
             break
         nb = counters[0]
@@ -467,6 +569,9 @@ def scan_key_sets(points, origin, res, max_range, discretize):
             nbc = np.empty(pool_cap, np.uint64)
             nbc[:nb] = bcodes[:nb]
             bcodes = nbc
+            nnbr = np.full(pool_cap * 6, -1, np.int64)
+            nnbr[: nb * 6] = nbr[: nb * 6]
+            nbr = nnbr
         if (nb + 1) * 2 > cap:
             cap *= 4
             mask = cap - 1
@@ -478,11 +583,62 @@ def scan_key_sets(points, origin, res, max_range, discretize):
                     hh = (hh + 1) & mask
                 tab_keys[hh] = bcodes[j]
                 tab_vals[hh] = j
-    nb = counters[0]
-    n_nonfinite = counters[1]
-    n_oob = counters[2]
-    n_failed = counters[3]
+    return tab_keys, tab_vals, pool, bcodes, counters[0], counters
 
+
+@njit(cache=True, nogil=True)
+def unite_marks(tab_keys, tab_vals, pool, bcodes, nb, pool2, bcodes2, nb2):
+    """Add the marks of another chunk of rays (pool2, bcodes2, nb2) to (tab_keys, ..., nb).
+
+    A scan's key sets are a union over its rays (free or hit per cell, hit wins), so OR-ing
+    the marks of chunks brick by brick gives the marks of the whole scan exactly. Returns the
+    (possibly grown) (tab_keys, tab_vals, pool, bcodes, nb).
+    """
+    need = nb + nb2
+    if need > bcodes.shape[0]:
+        npool = np.zeros(need * 512, np.uint8)
+        npool[: nb * 512] = pool[: nb * 512]
+        pool = npool
+        nbc = np.empty(need, np.uint64)
+        nbc[:nb] = bcodes[:nb]
+        bcodes = nbc
+    cap = tab_keys.shape[0]
+    if need * 2 > cap:
+        while need * 2 > cap:
+            cap *= 2
+        mask = cap - 1
+        tab_keys = np.full(cap, _EMPTY, np.uint64)
+        tab_vals = np.empty(cap, np.int64)
+        for j in range(nb):
+            hh = _hash(bcodes[j], mask)
+            while tab_keys[hh] != _EMPTY:
+                hh = (hh + 1) & mask
+            tab_keys[hh] = bcodes[j]
+            tab_vals[hh] = j
+    mask = cap - 1
+    for j in range(nb2):
+        bc = bcodes2[j]
+        idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
+        src = j * 512
+        if idx < 0:
+            idx = nb
+            bcodes[nb] = bc
+            nb += 1
+            tab_keys[h] = bc
+            tab_vals[h] = idx
+            dst = idx * 512
+            for m in range(512):
+                pool[dst + m] = pool2[src + m]
+        else:
+            dst = idx * 512
+            for m in range(512):
+                pool[dst + m] |= pool2[src + m]
+    return tab_keys, tab_vals, pool, bcodes, nb
+
+
+@njit(cache=True, nogil=True)
+def emit_marks(pool, bcodes, nb):
+    """Sorted Morton codes and hit flags of the marked cells of ``nb`` bricks. Releases the GIL."""
     # emit in Morton order: bricks sorted by code, cells by local Morton index
     order = np.argsort(bcodes[:nb])
     local = np.empty(512, np.int64)
@@ -509,7 +665,7 @@ def scan_key_sets(points, origin, res, max_range, discretize):
                 out[t] = hi | np.uint64(m)
                 is_hit[t] = (s & 2) != 0
                 t += 1
-    return out, is_hit, n_nonfinite, n_oob, n_failed
+    return out, is_hit
 
 
 # --------------------------------------------------------------------------- tree updates

@@ -119,6 +119,58 @@ def _k():
     return _kernels
 
 
+# Rays of one scan are first sorted by endpoint (kernels.sort_rays, for cache locality; from
+# _SORT_MIN_POINTS points on), then marked on several threads (numba's thread count,
+# NUMBA_NUM_THREADS) in interleaved blocks of _PARALLEL_BLOCK rays (neighbouring rays are alike
+# in length, so contiguous halves would be unbalanced), each thread into its own marks, which
+# are then OR-ed brick by brick. Key sets are a union over the rays, so neither the order nor
+# the split changes them: the maps stay bit-identical. Below _PARALLEL_MIN_CHUNK points per
+# thread the threads cost more than they save.
+_PARALLEL_MIN_CHUNK = 16384
+_SORT_MIN_POINTS = 4096
+_PARALLEL_BLOCK = 4096
+_EXECUTOR = None
+
+
+def _executor(n_workers: int):
+    global _EXECUTOR
+    if _EXECUTOR is None or _EXECUTOR._max_workers < n_workers:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _EXECUTOR = ThreadPoolExecutor(max_workers=n_workers, thread_name_prefix="octree")
+    return _EXECUTOR
+
+
+def _scan_key_sets(pts: np.ndarray, origin: np.ndarray, res: float, max_range: float,
+                   discretize: bool):
+    """kernels.scan_key_sets of a scan: rays sorted by endpoint, marked on numba's threads."""
+    k = _k()
+    from numba import get_num_threads
+
+    n = pts.shape[0]
+    if discretize:
+        return k.scan_key_sets(pts, origin, res, max_range, discretize)
+    if n >= _SORT_MIN_POINTS:
+        pts = k.sort_rays(pts, res)  # locality only: the key sets do not depend on the ray order
+    n_chunks = min(get_num_threads(), n // _PARALLEL_MIN_CHUNK)
+    if n_chunks < 2:
+        return k.scan_key_sets(pts, origin, res, max_range, False)
+    block_of = np.arange(n) // _PARALLEL_BLOCK % n_chunks
+    chunks = [pts[block_of == c] for c in range(n_chunks)]
+    ex = _executor(n_chunks - 1)
+    # the calling thread marks the last chunk (the kernels release the GIL)
+    futures = [ex.submit(k.scan_marks, c, origin, res, max_range) for c in chunks[:-1]]
+    parts = [k.scan_marks(chunks[-1], origin, res, max_range)]
+    parts = [f.result() for f in futures] + parts
+    tab_keys, tab_vals, pool, bcodes, nb, _ = parts[0]
+    for p in parts[1:]:
+        tab_keys, tab_vals, pool, bcodes, nb = k.unite_marks(tab_keys, tab_vals, pool, bcodes,
+                                                             nb, p[2], p[3], p[4])
+    codes, is_hit = k.emit_marks(pool, bcodes, nb)
+    counts = [sum(int(p[5][j]) for p in parts) for j in (1, 2, 3)]
+    return codes, is_hit, counts[0], counts[1], counts[2]
+
+
 class OcTree:
     """Probabilistic occupancy octree with liboctomap's semantics, defaults and file formats.
 
@@ -300,15 +352,15 @@ class OcTree:
         liboctomap insertPointCloud: every cell on a ray is updated at most once as free and
         every endpoint cell at most once as occupied; occupied wins over free; rays longer than
         ``max_range`` (if >= 0) are cut there and give no occupied endpoint. NaN/inf points are
-        skipped and counted (one warning), as are endpoints outside the map.
+        skipped and counted (one warning), as are endpoints outside the map. Large scans are
+        marked on numba's thread count (``NUMBA_NUM_THREADS``); the result does not depend on it.
         """
         self._check_updatable()
         pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
         o = np.asarray(origin, dtype=np.float32).reshape(3)
         if not np.isfinite(o).all():
             raise OctreeError(f"sensor origin must be finite, got {o.tolist()}")
-        k = _k()
-        codes, is_hit, n_nonfinite, n_oob, _n_failed = k.scan_key_sets(
+        codes, is_hit, n_nonfinite, n_oob, _n_failed = _scan_key_sets(
             pts, o, self.resolution, float(max_range), bool(discretize))
         if n_nonfinite or n_oob:
             warnings.warn(f"insert_point_cloud: skipped {n_nonfinite} non-finite points and "
