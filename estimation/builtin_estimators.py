@@ -138,7 +138,8 @@ def _registration_scenario(rng: np.random.Generator) -> RegistrationScenario:
     target, target_probs = _labelled_corner_scene(rng)
     source_world, source_probs = _labelled_corner_scene(rng)
     T_target_source = gtsam.Pose3.Expmap(np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 0.2, 3)])
-    source = np.asarray([T_target_source.inverse().transformFrom(p) for p in source_world])
+    T_source_target = T_target_source.inverse().matrix()
+    source = source_world @ T_source_target[:3, :3].T + T_source_target[:3, 3]
     T_init = T_target_source.compose(
         gtsam.Pose3.Expmap(np.r_[rng.normal(0, 0.02, 3), rng.normal(0, 0.05, 3)]))
     return RegistrationScenario(source, target, T_target_source.matrix(), T_init.matrix(),

@@ -58,24 +58,38 @@ def _check_quaternion(path: PathLike, line_no: int, q: np.ndarray) -> None:
 
 
 # ---------------------------------------------------------------- TUM
+def read_tum_arrays(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Parse a TUM trajectory: (timestamps (N,), poses (N, 7) ``tx ty tz qx qy qz qw``).
+
+    Rows stay in file order (N may be 0). Text after ``#`` and blank lines are skipped;
+    commas are accepted as separators. Every value must be finite and every quaternion
+    of unit norm, else a :class:`FormatError` names the file and line.
+    """
+    rows = []
+    with open(path, encoding="utf-8", errors="replace") as handle:
+        for line_no, line in enumerate(handle, 1):
+            tokens = line.split("#", 1)[0].replace(",", " ").split()
+            if not tokens:
+                continue
+            values = _parse_float_line(path, line_no, tokens, 8,
+                                       "TUM pose line 't tx ty tz qx qy qz qw'")
+            _check_quaternion(path, line_no, values[4:8])
+            rows.append(values)
+    data = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
+    return data[:, 0].copy(), data[:, 1:].copy()
+
+
 def read_tum(path: PathLike) -> PoseGraph:
     """Read a TUM trajectory (``t tx ty tz qx qy qz qw`` per line) into a PoseGraph.
 
-    Nodes get ids 0..N-1 in file order and no factors. ``#`` lines and blank lines are
-    skipped; commas are accepted as separators.
+    Nodes get ids 0..N-1 in file order and no factors (parsing: :func:`read_tum_arrays`).
     """
-    graph = PoseGraph()
-    with open(path, encoding="utf-8", errors="replace") as handle:
-        for line_no, line in enumerate(handle, 1):
-            text = line.strip()
-            if not text or text.startswith("#"):
-                continue
-            values = _parse_float_line(path, line_no, text.replace(",", " ").split(), 8,
-                                       "TUM pose line 't tx ty tz qx qy qz qw'")
-            _check_quaternion(path, line_no, values[4:8])
-            graph.add_node(len(graph.nodes), pose_from_tum(values[1:]), timestamp=values[0])
-    if not graph.nodes:
+    stamps, poses = read_tum_arrays(path)
+    if len(stamps) == 0:
         raise FormatError(path, "no poses found in TUM trajectory")
+    graph = PoseGraph()
+    for stamp, values in zip(stamps, poses):
+        graph.add_node(len(graph.nodes), pose_from_tum(values), timestamp=float(stamp))
     return graph
 
 
@@ -182,7 +196,7 @@ def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
     digits and so moves poses by up to ~1e-6. Priors, robust kernels, custom factors,
     timestamps and scans have no place in the file and are dropped.
     """
-    dropped = _Dropped()
+    dropped: dict[str, None] = {}  # insertion-ordered set
     lines = []
     for node_id in graph.sorted_ids():
         tx, ty, tz, qx, qy, qz, qw = pose_to_tum(graph.nodes[node_id].pose)
@@ -192,34 +206,21 @@ def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
     upper = np.triu_indices(6)
     for record in graph.factors:
         if record.measured is None or len(record.nodes) != 2:
-            dropped.add(f"{record.kind} factors")
+            dropped[f"{record.kind} factors"] = None
             continue
         if record.robust is not None:
-            dropped.add("robust kernels (edges written as Gaussian)")
+            dropped["robust kernels (edges written as Gaussian)"] = None
         info = np.linalg.inv(record.covariance)[np.ix_(reorder, reorder)]
         i, j = record.nodes
         lines.append(f"EDGE_SE3:QUAT {i} {j} {_g2o_numbers(pose_to_tum(record.measured))} "
                      f"{_g2o_numbers(info[upper])}")
     if any(node.scan is not None for node in graph.nodes.values()):
-        dropped.add("scans")
+        dropped["scans"] = None
     if any(node.timestamp != 0.0 for node in graph.nodes.values()):
-        dropped.add("timestamps")
+        dropped["timestamps"] = None
     with atomic_write(path, "w") as handle:
         handle.write("\n".join(lines) + "\n")
-    return dropped.items()
-
-
-class _Dropped:
-    """Ordered set of dropped items (kept tiny on purpose)."""
-
-    def __init__(self) -> None:
-        self._items: dict[str, None] = {}
-
-    def add(self, item: str) -> None:
-        self._items[item] = None
-
-    def items(self) -> list[str]:
-        return list(self._items)
+    return list(dropped)
 
 
 # ---------------------------------------------------------------- OctoMap .graph
@@ -328,15 +329,15 @@ def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
     become edges (their measured pose, weight from metadata or 1.0); other factors, labels
     and covariances are dropped.
     """
-    dropped = _Dropped()
+    dropped: dict[str, None] = {}  # insertion-ordered set
     parts: list[bytes] = [struct.pack("<I", len(graph.nodes))]
     for node_id in graph.sorted_ids():
         node = graph.nodes[node_id]
         points = np.zeros((0, 3), np.float32) if node.scan is None else node.scan.points
         if node.scan is not None and (node.scan.labels is not None or node.scan.probs is not None):
-            dropped.add("point labels")
+            dropped["point labels"] = None
         if node.cov is not None:
-            dropped.add("node covariances")
+            dropped["node covariances"] = None
         block = np.empty(len(points), dtype=_POINT_DTYPE)
         block["tag"] = 3
         block["xyz"] = points.astype(np.float64)
@@ -349,9 +350,9 @@ def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
         if record.measured is not None and len(record.nodes) == 2:
             edges.append(record)
         else:
-            dropped.add(f"{record.kind} factors")
+            dropped[f"{record.kind} factors"] = None
     if any(record.covariance is not None for record in edges):
-        dropped.add("edge covariances (kept as weights only)")
+        dropped["edge covariances (kept as weights only)"] = None
     parts.append(struct.pack("<I", len(edges)))
     for record in edges:
         i, j = record.nodes
@@ -359,11 +360,11 @@ def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
         parts.append(_pose6d_for(record.measured, record.metadata.get(GRAPH_POSE_KEY)).pack())
         parts.append(struct.pack("<d", float(record.metadata.get("weight", 1.0))))
     if any(node.timestamp != 0.0 for node in graph.nodes.values()):
-        dropped.add("timestamps")
+        dropped["timestamps"] = None
     with atomic_write(path, "wb") as handle:
         for part in parts:
             handle.write(part)
-    return dropped.items()
+    return list(dropped)
 
 
 # ---------------------------------------------------------------- dispatch
@@ -442,7 +443,8 @@ def _read_cloud(path: Path) -> np.ndarray:
 
 
 __all__ = [
-    "read_tum", "write_tum", "read_g2o", "write_g2o", "read_scan_graph", "write_scan_graph",
+    "read_tum", "read_tum_arrays", "write_tum", "read_g2o", "write_g2o", "read_scan_graph",
+    "write_scan_graph",
     "read_pose_graph", "write_pose_graph", "load_node_clouds", "pose_from_tum", "pose_to_tum",
     "format_of", "node_key",
 ]

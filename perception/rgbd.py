@@ -161,30 +161,13 @@ def read_timestamp_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]
 
 
 def read_groundtruth(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Return (timestamps (N,), poses (N,7) tx ty tz qx qy qz qw) of a TUM ground-truth file."""
-    path = Path(path)
-    rows: list[list[float]] = []
-    with open(path, encoding="utf-8", errors="replace") as handle:
-        for number, line in enumerate(handle, start=1):
-            fields = line.split("#", 1)[0].split()
-            if not fields:
-                continue
-            if len(fields) != 8:
-                raise FormatError(path, "expected 't tx ty tz qx qy qz qw' (8 numbers), "
-                                        f"found {len(fields)}", line=number)
-            try:
-                row = [float(field) for field in fields]
-            except ValueError:
-                raise FormatError(path, "ground-truth values must be numbers",
-                                  line=number) from None
-            norm = np.linalg.norm(row[4:])
-            if not np.all(np.isfinite(row)) or abs(norm - 1.0) > 1e-3:
-                raise FormatError(path, "values must be finite and the quaternion of unit norm",
-                                  line=number)
-            rows.append(row)
-    data = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
-    order = np.argsort(data[:, 0], kind="stable")
-    return data[order, 0], data[order, 1:]
+    """Return (timestamps (N,), poses (N,7) tx ty tz qx qy qz qw) of a TUM ground-truth file,
+    sorted by time (parsing and its errors: :func:`estimation.io.read_tum_arrays`)."""
+    from estimation.io import read_tum_arrays
+
+    stamps, poses = read_tum_arrays(path)
+    order = np.argsort(stamps, kind="stable")
+    return stamps[order], poses[order]
 
 
 def associate(stamps_a: np.ndarray, stamps_b: np.ndarray, max_dt: float) -> np.ndarray:

@@ -61,7 +61,7 @@ def run_map(args: argparse.Namespace) -> int:
     from estimation.io import load_node_clouds, read_pose_graph
     from mapping import fuse
 
-    ext = _check_ext(args.output, (".bt", ".ot"))
+    _check_ext(args.output, (".bt", ".ot"))
     if not args.resolution > 0:
         raise OctofactorError(f"resolution must be positive, got {args.resolution}")
     graph = read_pose_graph(args.graph)
@@ -72,10 +72,7 @@ def run_map(args: argparse.Namespace) -> int:
                               ".g2o/TUM graphs)")
     tree = fuse(graph, args.resolution, max_range=args.max_range, discretize=args.discretize,
                 progress=sys.stderr.isatty())
-    if ext == ".bt":
-        tree.write_bt(args.output)
-    else:
-        tree.write_ot(args.output)
+    tree.write(args.output)  # .bt or .ot by extension
     print(f"{args.output}: {tree.size()} nodes, {tree.num_leaf_nodes()} leaves, "
           f"resolution {args.resolution:g} m")
     return 0
@@ -101,12 +98,9 @@ def run_info(args: argparse.Namespace) -> int:
 def run_convert(args: argparse.Namespace) -> int:
     from mapping import OcTree
 
-    ext = _check_ext(args.output, (".bt", ".ot"))
+    _check_ext(args.output, (".bt", ".ot"))
     tree = OcTree.read(args.input)
-    if ext == ".bt":
-        tree.write_bt(args.output)
-    else:
-        tree.write_ot(args.output)
+    tree.write(args.output)
     print(f"{args.output}: {tree.size()} nodes")
     return 0
 
