@@ -78,21 +78,39 @@ def pose_errors(graph: PoseGraph, truth: list[gtsam.Pose3]) -> np.ndarray:
     return np.array([graph.nodes[i].pose.localCoordinates(truth[i]) for i in graph.sorted_ids()])
 
 
-def loop_graph_joint_nees(seed: int, n_poses: int = 10, model_scale: float = 1.0) -> float:
-    """Joint NEES (dof 6 x n_poses) of one simulated loop after Levenberg-Marquardt.
+@dataclass(frozen=True)
+class LoopGraphNees:
+    """NEES of one optimised simulated loop: per node (6 dof each) and joint (6 x N dof)."""
 
-    Errors are ``localCoordinates`` (tangent [rotation, translation] at the estimate) and the
-    covariance is GTSAM's joint marginal of all nodes, so correlations along the loop count.
+    per_node: np.ndarray              # (N,) with each node's marginal covariance
+    joint: float                      # with GTSAM's joint marginal of all nodes
+
+
+def loop_graph_nees(seed: int, n_poses: int = 10, model_scale: float = 1.0) -> LoopGraphNees:
+    """Per-node and joint NEES of one simulated loop after Levenberg-Marquardt.
+
+    Errors are ``localCoordinates`` (tangent [rotation, translation] at the estimate); the joint
+    value uses GTSAM's joint marginal of all nodes, so correlations along the loop count.
     """
+    from .covariance import nees
     from .pose_graph import node_key
 
     sim = simulate_loop_graph(np.random.default_rng(seed), n_poses=n_poses,
                               model_scale=model_scale)
     sim.graph.optimize("lm")
-    errors = pose_errors(sim.graph, sim.truth).reshape(-1)
+    errors = pose_errors(sim.graph, sim.truth)
+    ids = sim.graph.sorted_ids()
     keys = gtsam.KeyVector()
-    for node_id in sim.graph.sorted_ids():
+    for node_id in ids:
         keys.append(node_key(node_id))
-    joint = gtsam.Marginals(sim.graph.graph(), sim.graph.values()).jointMarginalCovariance(
-        keys).fullMatrix()
-    return float(errors @ np.linalg.solve(joint, errors))
+    marginals = gtsam.Marginals(sim.graph.graph(), sim.graph.values())
+    joint = marginals.jointMarginalCovariance(keys).fullMatrix()
+    per_node = nees(errors, np.array([marginals.marginalCovariance(node_key(i)) for i in ids]))
+    flat = errors.reshape(-1)
+    return LoopGraphNees(np.asarray(per_node, dtype=float),
+                         float(flat @ np.linalg.solve(joint, flat)))
+
+
+def loop_graph_joint_nees(seed: int, n_poses: int = 10, model_scale: float = 1.0) -> float:
+    """Joint NEES (dof 6 x n_poses) of one simulated loop: :func:`loop_graph_nees`'s ``joint``."""
+    return loop_graph_nees(seed, n_poses, model_scale).joint

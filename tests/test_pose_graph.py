@@ -1,12 +1,14 @@
 """PoseGraph: building, solving, marginals in [rotation, translation] order, consistency."""
 from __future__ import annotations
 
+import functools
+
 import gtsam
 import numpy as np
 import pytest
 
 from estimation import EstimationError, PoseGraph, check_consistency
-from estimation.simulation import loop_graph_joint_nees, simulate_loop_graph
+from estimation.simulation import loop_graph_joint_nees, loop_graph_nees, simulate_loop_graph
 
 
 def _pose(x=0.0, y=0.0, z=0.0, yaw=0.0, pitch=0.0, roll=0.0) -> gtsam.Pose3:
@@ -113,20 +115,30 @@ def test_robust_between_factor_downweights_an_outlier():
 N_POSES = 10
 
 
-def _loop_nees(n_runs: int, model_scale: float) -> np.ndarray:
-    """Per run, the joint NEES of all node estimates (dof 6 x N_POSES) after LM."""
-    return np.array([loop_graph_joint_nees(1000 + seed, N_POSES, model_scale)
-                     for seed in range(n_runs)])
+@functools.cache
+def _loop_nees(n_runs: int, model_scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per run after LM: (n_runs, N_POSES) per-node NEES and (n_runs,) joint NEES."""
+    runs = [loop_graph_nees(1000 + seed, N_POSES, model_scale) for seed in range(n_runs)]
+    return np.array([r.per_node for r in runs]), np.array([r.joint for r in runs])
 
 
 def test_pose_graph_nees_is_consistent():
-    nees_values = _loop_nees(200, 1.0)
-    check = check_consistency(nees_values, dof=6 * N_POSES)
+    per_node, joint = _loop_nees(200, 1.0)
+    check = check_consistency(joint, dof=6 * N_POSES)
     assert check.passed, check
+    # each node's marginal alone (dof 6), every node inside its band on >= 90 % of the nodes
+    check_nodes = check_consistency(per_node, dof=6)
+    assert check_nodes.passed, check_nodes
+
+
+def test_loop_graph_joint_nees_is_the_joint_value():
+    assert loop_graph_joint_nees(1000, N_POSES) == _loop_nees(200, 1.0)[1][0]
 
 
 def test_pose_graph_nees_negative_control_fails():
     # Noise models four times too confident (variance x 0.25): NEES ~ 4x too large.
-    check = check_consistency(_loop_nees(200, 0.25), dof=6 * N_POSES)
+    per_node, joint = _loop_nees(200, 0.25)
+    check = check_consistency(joint, dof=6 * N_POSES)
     assert not check.passed
+    assert not check_consistency(per_node, dof=6).passed
     assert check.mean > 2 * 6 * N_POSES
