@@ -1,19 +1,23 @@
 """Frame-to-frame RGB-D visual odometry (Open3D's hybrid photometric + geometric odometry).
 
-Open3D's ``compute_rgbd_odometry(source, target, ...)`` returns the transform that maps
-source-camera points into the target camera, so with source = current and target = previous
-it is ``T_prev_curr``. Its 6x6 information matrix is ordered [rotation, translation] (the
-translation block is the number of correspondences times the identity) and belongs to a
-*left* perturbation, T = exp(xi) T_hat, expressed in the previous camera's frame; GTSAM's
-tangent space is the right perturbation T = T_hat exp(xi_r) with xi_r = Ad(T_hat^-1) xi, so
-the covariance is carried over with the adjoint of T_hat^-1.
+Two Open3D backends (:class:`OdometryConfig` ``backend``): the tensor one,
+``open3d.t.pipelines.odometry.rgbd_odometry_multi_scale`` (default: ~5x faster on the CPU
+at 640x480), and the legacy ``open3d.pipelines.odometry.compute_rgbd_odometry`` (kept as
+the reference). Both are called with source = current and target = previous, so their
+result, which maps source-camera points into the target camera, is ``T_prev_curr``. Their
+6x6 point-to-point information matrix (the tensor backend's from
+``compute_odometry_information_matrix``, on depth subsampled by 2) is ordered [rotation,
+translation] (the translation block is the number of correspondences times the identity)
+and belongs to a *left* perturbation, T = exp(xi) T_hat, expressed in the previous camera's
+frame; GTSAM's tangent space is the right perturbation T = T_hat exp(xi_r) with
+xi_r = Ad(T_hat^-1) xi, so the covariance is carried over with the adjoint of T_hat^-1.
 
-That information matrix counts every pixel as an independent unit-variance point, which is
-badly shaped for a corridor (rotation and lateral motion look 15x worse than they are,
-forward motion better); it is scaled and given a per-axis floor calibrated on the simulated
-corridor for 640- and 320-pixel-wide images (:data:`COV_CALIBRATION`) so that the NEES
-against ground truth is close to its chi-square mean of 6 (benchmarks/corridor_sim.py
-measures it on other seeds).
+That information matrix counts every pixel as an independent unit-variance point, which
+says nothing about the errors that matter in a corridor (a pitch error coupled with a
+vertical translation error, see :data:`COV_CALIBRATION`); it is scaled and a full 6x6
+floor is added, both calibrated on the simulated corridor per backend and image width so
+that the NEES against ground truth is close to its chi-square mean of 6
+(benchmarks/corridor_sim.py fits the table and checks it on other seeds).
 
 Open3D's dense odometry converges only from a guess within a few centimetres along a
 monotonous corridor (with 0.24 m steps from identity it settles on ~zero forward motion and
@@ -33,30 +37,74 @@ import numpy as np
 from perception.errors import PerceptionError
 from perception.rgbd import CameraIntrinsics, RgbdFrame
 
-# (cov_scale, cov_floor) per image width, fitted on the simulated corridor (seeds 1, 2, 6, 7;
-# 15 m, 2 clutter boxes; 640x480 renders, resized with INTER_AREA / INTER_NEAREST for 320).
-# Open3D's point-to-point information overstates the rotation and lateral uncertainty ~15x
-# and understates the forward one, so it is scaled down and a per-axis floor is added; the
-# large tz floor (along the optical axis) is the forward-motion error that photometric
-# odometry makes in a monotonous corridor. Fitted so that each axis and the 6-dof NEES have
-# their chi-square means; at 640 one gross 1.2 cm vertical outlier (NEES ~200) of the 208
-# pairs was left out of the fit (it is for the filter's gate). Errors are heavy-tailed:
-# ~10 % of the pairs lie above the 95 % chi-square quantile on the fitting set.
-COV_CALIBRATION: dict[int, tuple[float, tuple[float, ...]]] = {
-    640: (0.00244, (8.1e-5, 5.9e-5, 9e-6, 1.54e-4, 2.47e-4, 2.21e-3)),
-    320: (0.00258, (2.64e-4, 2.0e-4, 9e-6, 5.94e-4, 1.33e-3, 6.93e-3)),
+# (cov_scale, cov_floor) per backend and image width: cov = cov_scale * inv(information)
+# (moved to the right perturbation) + cov_floor, fitted by maximum likelihood on simulated
+# corridors (perception.simulation.corridor defaults, 15 m, 2 clutter boxes; tensor backend:
+# seeds 6-11, 310 pairs, at 640 and seeds 6-9, 206 pairs, at 320 (INTER_AREA /
+# INTER_NEAREST resize); legacy: seeds 6-7, 104 pairs; benchmarks/corridor_sim.py --fit).
+# Per corridor the fitted model's mean NEES ranges 5.0-7.9 (the bias varies with the doors).
+# The floor is the errors' second moment minus the scaled information part: a full 6x6
+# matrix in [rx ry rz tx ty tz] of the current camera, because the dominant error is a pitch error
+# ~99 % correlated with a vertical translation error (the camera seems to rotate about the
+# scene ~3 m ahead: faint texture, vignetting and 3.5 m of depth leave that direction weakly
+# observed; the tensor backend's pitch error has a mean of ~-1.8 mrad per pair). Open3D's
+# point-to-point information (one unit-variance point per pixel) gives a pitch sigma of
+# ~0.5 mrad where the errors are ~2.4 mrad rms, and no pitch-vertical coupling. Errors are
+# heavy-tailed: ~8-12 % of the pairs lie above the 95 % chi-square quantile.
+COV_CALIBRATION: dict[str, dict[int, tuple[float, tuple]]] = {
+    "tensor": {
+        640: (0.0006813, (
+            (6.227e-06, -2.298e-07, -2.37e-08, 8.894e-07, 1.927e-05, 1.128e-07),
+            (-2.298e-07, 1.235e-07, 6.855e-09, -2.998e-07, -7.383e-07, -2.56e-07),
+            (-2.37e-08, 6.855e-09, 2.748e-08, -1.089e-08, -8.8e-08, -6.138e-08),
+            (8.894e-07, -2.998e-07, -1.089e-08, 7.721e-07, 2.842e-06, 6.149e-07),
+            (1.927e-05, -7.383e-07, -8.8e-08, 2.842e-06, 6.037e-05, 2.053e-07),
+            (1.128e-07, -2.56e-07, -6.138e-08, 6.149e-07, 2.053e-07, 9.922e-06))),
+        # at 320 the likelihood is best without the information part: a constant covariance
+        320: (0.0, (
+            (1.432e-05, -2.014e-07, -1.115e-07, 2.074e-06, 4.346e-05, -1.687e-06),
+            (-2.014e-07, 7.536e-07, 8.757e-09, -1.728e-06, -7.523e-07, -2.146e-07),
+            (-1.115e-07, 8.757e-09, 1.392e-07, -2.749e-08, -3.266e-07, -6.481e-07),
+            (2.074e-06, -1.728e-06, -2.749e-08, 4.389e-06, 6.934e-06, -3.16e-07),
+            (4.346e-05, -7.523e-07, -3.266e-07, 6.934e-06, 0.0001343, -7.986e-06),
+            (-1.687e-06, -2.146e-07, -6.481e-07, -3.16e-07, -7.986e-06, 5.026e-05))),
+    },
+    # measured at 640 only (other widths take it: nearest calibrated width)
+    "legacy": {
+        640: (0.002868, (
+            (7.091e-06, 9.944e-08, -8.023e-08, -3.076e-08, 2.097e-05, 1.992e-06),
+            (9.944e-08, 5.162e-08, -1.492e-08, -9.587e-08, 2.535e-07, -4.131e-08),
+            (-8.023e-08, -1.492e-08, 8.848e-09, 1.867e-08, -2.215e-07, -1.192e-07),
+            (-3.076e-08, -9.587e-08, 1.867e-08, 2.082e-07, -1.065e-08, 3.514e-07),
+            (2.097e-05, 2.535e-07, -2.215e-07, -1.065e-08, 6.212e-05, 5.927e-06),
+            (1.992e-06, -4.131e-08, -1.192e-07, 3.514e-07, 5.927e-06, 2.67e-05))),
+    },
 }
+
+
+def floor_matrix(cov_floor) -> np.ndarray:
+    """Return the (6, 6) floor covariance: diag(sigma^2) from 6 sigmas, or the 6x6 given."""
+    floor = np.asarray(cov_floor, dtype=float)
+    if floor.shape == (6,):
+        return np.diag(np.square(floor))
+    if floor.shape == (6, 6):
+        # the tables are rounded to 4 digits: keep the (nearly singular) matrix PSD
+        values, vectors = np.linalg.eigh(0.5 * (floor + floor.T))
+        return (vectors * np.maximum(values, 0.0)) @ vectors.T
+    raise PerceptionError(f"cov_floor must be 6 sigmas or a 6x6 matrix, got shape {floor.shape}")
 
 
 def covariance_model(width: int, config: OdometryConfig | None = None
                      ) -> tuple[float, tuple[float, ...]]:
     """Return (cov_scale, cov_floor): the config's, else the calibration of the nearest width.
 
+    The calibration belongs to the config's backend (default config: the default backend).
     Widths between or beyond the calibrated ones take the nearest (in log ratio): the model
     is only measured at the calibrated widths.
     """
-    nearest = min(COV_CALIBRATION, key=lambda w: abs(np.log(w / max(width, 1))))
-    scale, floor = COV_CALIBRATION[nearest]
+    table = COV_CALIBRATION[(config or OdometryConfig()).backend]
+    nearest = min(table, key=lambda w: abs(np.log(w / max(width, 1))))
+    scale, floor = table[nearest]
     if config is not None and config.cov_scale is not None:
         scale = config.cov_scale
     if config is not None and config.cov_floor is not None:
@@ -70,8 +118,23 @@ class OdometryConfig:
 
     Attributes
     ----------
+    backend : str
+        "tensor": Open3D's tensor odometry (``open3d.t.pipelines.odometry.
+        rgbd_odometry_multi_scale``, CPU), "legacy": ``open3d.pipelines.odometry.
+        compute_rgbd_odometry`` (slower, kept as the reference).
+    method : str
+        Residual of the tensor backend: "hybrid" (photometric + point-to-plane),
+        "point_to_plane" or "intensity"; the legacy backend is always hybrid.
     iterations : tuple of int
-        Gauss-Newton iterations per pyramid level, coarse to fine (Open3D's option).
+        Gauss-Newton iterations per pyramid level, coarse to fine (Open3D's option). The
+        default skips the full-resolution level (0 iterations; the tensor backend then runs
+        on half-size images and never builds it): from the PnP guess the half- and
+        quarter-resolution levels reach the same accuracy on the corridor at a third of the
+        cost (the errors are set by the scene, not by the last pixel).
+    information_stride : int
+        Tensor backend: the information matrix is computed on the depth images subsampled
+        by this factor (the count of correspondences shrinks by its square; the calibrated
+        ``cov_scale`` absorbs that).
     depth_diff_max : float
         Largest depth difference (m) of a correspondence.
     depth_min, depth_max : float
@@ -79,26 +142,34 @@ class OdometryConfig:
     min_valid_fraction : float
         Below this share of valid depth pixels in either frame the pair fails.
     min_correspondences : int
-        Below this many correspondences (from the information matrix) the pair fails.
+        Below this many correspondences (from the information matrix; with the tensor
+        backend its count times ``information_stride`` squared) the pair fails.
     max_translation, max_rotation_deg : float
         Larger increments are reported as failures (divergence), m and degrees.
     cov_scale : float or None
         Multiplies inv(information); None: from :data:`COV_CALIBRATION` for the image width.
-    cov_floor : tuple of 6 float or None
-        Standard deviations [rx, ry, rz (rad), tx, ty, tz (m)] in the current camera frame
-        added in quadrature to the diagonal; None: from :data:`COV_CALIBRATION`.
+    cov_floor : tuple or None
+        Added to the scaled inverse information: 6 standard deviations [rx, ry, rz (rad),
+        tx, ty, tz (m)] in the current camera frame (a diagonal), or a full 6x6 covariance
+        (rows as tuples; it carries correlations such as pitch with vertical motion);
+        None: from :data:`COV_CALIBRATION`.
     failure_sigma : tuple of float
         Standard deviations (rad, m) of the covariance returned with a failure.
     pnp_init : bool
         Initialise from features + PnP (else from ``T_init``).
     pnp_min_inliers : int
         Fewer PnP inliers fall back to ``T_init``.
+    pnp_corners, pnp_window : int
+        Most Shi-Tomasi corners tracked, and the Lucas-Kanade window (pixels).
     max_disagreement : tuple of float
         (m, degrees): a dense result further than this from the PnP guess is a failure
         (the dense refinement slid along the corridor).
     """
 
-    iterations: tuple[int, ...] = (20, 10, 5)
+    backend: str = "tensor"
+    method: str = "hybrid"
+    iterations: tuple[int, ...] = (10, 5, 0)
+    information_stride: int = 2
     depth_diff_max: float = 0.07
     depth_min: float = 0.3
     depth_max: float = 8.0
@@ -111,6 +182,8 @@ class OdometryConfig:
     failure_sigma: tuple[float, float] = (1.0, 10.0)
     pnp_init: bool = True
     pnp_min_inliers: int = 15
+    pnp_corners: int = 300
+    pnp_window: int = 15
     max_disagreement: tuple[float, float] = (0.05, 3.0)
 
 
@@ -131,12 +204,14 @@ class OdometryResult:
     ms : float
         Wall time of the call in milliseconds.
     correspondences : int
-        Number of pixel correspondences at the finest level (0 on failure).
+        Number of pixel correspondences counted by the information matrix (the tensor
+        backend counts on depth subsampled by ``information_stride``; 0 on failure).
     init : str
         Where the dense odometry started: "pnp", "given" (T_init) or "identity".
     information : np.ndarray or None
         Open3D's raw 6x6 information matrix ([rotation, translation], left perturbation in
-        the previous camera frame, unit-variance points); None on failure.
+        the previous camera frame, unit-variance points; the tensor backend's on depth
+        subsampled by ``information_stride``); None on failure.
     """
 
     T_prev_curr: gtsam.Pose3
@@ -167,10 +242,11 @@ def pnp_guess(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
     depth = prev.depth_m
     mask = (np.isfinite(depth) & (depth > config.depth_min) & (depth < config.depth_max))
     # a low quality level: one strong door corner must not suppress the faint texture corners
-    corners = cv2.goodFeaturesToTrack(gray_prev, 500, 0.001, 8, mask=mask.astype(np.uint8))
+    corners = cv2.goodFeaturesToTrack(gray_prev, config.pnp_corners, 0.001, 8,
+                                      mask=mask.astype(np.uint8))
     if corners is None or len(corners) < config.pnp_min_inliers:
         return None, 0
-    lk = dict(winSize=(21, 21), maxLevel=4)
+    lk = dict(winSize=(config.pnp_window, config.pnp_window), maxLevel=4)
     tracked, status, _ = cv2.calcOpticalFlowPyrLK(gray_prev, gray_curr, corners, None, **lk)
     back, status_back, _ = cv2.calcOpticalFlowPyrLK(gray_curr, gray_prev, tracked, None, **lk)
     good = ((status[:, 0] == 1) & (status_back[:, 0] == 1)
@@ -220,7 +296,7 @@ def information_to_covariance(info: np.ndarray, T_prev_curr: gtsam.Pose3,
     cov_left = cov_scale * np.linalg.inv(info)
     adjoint = T_prev_curr.inverse().AdjointMap()
     cov = adjoint @ cov_left @ adjoint.T
-    cov = cov + np.diag(np.square(np.asarray(cov_floor, dtype=float)))
+    cov = cov + floor_matrix(cov_floor)
     return 0.5 * (cov + cov.T)
 
 
@@ -246,8 +322,6 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
     the pose and a very large covariance; never an exception. Frames that do not match the
     camera size raise PerceptionError.
     """
-    import open3d as o3d
-
     start = time.perf_counter()
     init = "identity" if T_init is None else "given"
     T_init = gtsam.Pose3() if T_init is None else T_init
@@ -266,27 +340,19 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
         if T_pnp is not None:
             T_init, init = T_pnp, "pnp"
 
-    def rgbd_image(frame: RgbdFrame):
-        depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0).astype(np.float32)
-        return o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(frame.rgb)), o3d.geometry.Image(depth),
-            depth_scale=1.0, depth_trunc=config.depth_max, convert_rgb_to_intensity=True)
-
-    pinhole = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy,
-                                                intr.cx, intr.cy)
-    option = o3d.pipelines.odometry.OdometryOption(
-        iteration_number_per_pyramid_level=o3d.utility.IntVector(list(config.iterations)),
-        depth_diff_max=config.depth_diff_max, depth_min=config.depth_min,
-        depth_max=config.depth_max)
-    # source = current, target = previous: Open3D's result maps source into target
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        ok, T, info = o3d.pipelines.odometry.compute_rgbd_odometry(
-            rgbd_image(curr), rgbd_image(prev), pinhole, T_init.matrix(),
-            o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), option)
+    try:
+        if config.backend == "tensor":
+            ok, T, info = _dense_tensor(prev, curr, intr, T_init, config)
+        else:
+            ok, T, info = _dense_legacy(prev, curr, intr, T_init, config)
+    except RuntimeError as exc:  # Open3D raises when no pixel corresponds at all
+        return _failure(T_init, config, f"Open3D odometry failed ({exc})", start, init)
     if not ok:
         return _failure(T_init, config, "Open3D odometry did not converge", start, init)
     correspondences = int(round(info[5, 5]))
-    if correspondences < config.min_correspondences:
+    # the tensor backend counts on subsampled depth: compare the full-resolution estimate
+    stride = max(1, int(config.information_stride)) if config.backend == "tensor" else 1
+    if correspondences * stride ** 2 < config.min_correspondences:
         return _failure(T_init, config, f"too few correspondences ({correspondences})", start,
                         init)
     if not (np.all(np.isfinite(T)) and np.all(np.isfinite(info))):
@@ -309,3 +375,109 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
     cov = information_to_covariance(info, T_prev_curr, config, intr.width)
     return OdometryResult(T_prev_curr, cov, True, "", (time.perf_counter() - start) * 1e3,
                           correspondences, init, np.array(info))
+
+
+def _dense_legacy(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
+                  T_init: gtsam.Pose3, config: OdometryConfig):
+    """(converged, T_prev_curr 4x4, information 6x6) from Open3D's legacy hybrid odometry."""
+    import open3d as o3d
+
+    def rgbd_image(frame: RgbdFrame):
+        depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0).astype(np.float32)
+        return o3d.geometry.RGBDImage.create_from_color_and_depth(
+            o3d.geometry.Image(np.ascontiguousarray(frame.rgb)), o3d.geometry.Image(depth),
+            depth_scale=1.0, depth_trunc=config.depth_max, convert_rgb_to_intensity=True)
+
+    pinhole = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy,
+                                                intr.cx, intr.cy)
+    option = o3d.pipelines.odometry.OdometryOption(
+        iteration_number_per_pyramid_level=o3d.utility.IntVector(list(config.iterations)),
+        depth_diff_max=config.depth_diff_max, depth_min=config.depth_min,
+        depth_max=config.depth_max)
+    # source = current, target = previous: Open3D's result maps source into target
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        ok, T, info = o3d.pipelines.odometry.compute_rgbd_odometry(
+            rgbd_image(curr), rgbd_image(prev), pinhole, T_init.matrix(),
+            o3d.pipelines.odometry.RGBDOdometryJacobianFromHybridTerm(), option)
+    return ok, np.asarray(T), np.asarray(info)
+
+
+_TENSOR_METHODS = {"hybrid": "Hybrid", "point_to_plane": "PointToPlane",
+                   "intensity": "Intensity"}
+
+
+def _dense_tensor(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
+                  T_init: gtsam.Pose3, config: OdometryConfig):
+    """(converged, T_prev_curr 4x4, information 6x6) from Open3D's tensor odometry.
+
+    Trailing pyramid levels with 0 iterations are never built: the images are halved once
+    per such level (colour INTER_AREA, depth INTER_NEAREST, intrinsics with pixel centres
+    at integers) and the remaining levels run on them; Open3D would otherwise still prepare
+    the full-resolution level it does not iterate on (a third of the time at 640x480). The
+    information matrix (Open3D's point-to-point one, same layout as the legacy backend's)
+    is computed on depth subsampled by ``config.information_stride``.
+    """
+    import cv2
+    import open3d as o3d
+
+    odometry = o3d.t.pipelines.odometry
+    if config.method not in _TENSOR_METHODS:
+        raise PerceptionError(f"unknown odometry method {config.method!r}; expected one of "
+                              f"{sorted(_TENSOR_METHODS)}")
+    levels = [int(n) for n in config.iterations]
+    factor = 1
+    while len(levels) > 1 and levels[-1] == 0:
+        levels.pop()
+        factor *= 2
+
+    def depth_of(frame: RgbdFrame) -> np.ndarray:
+        depth = frame.depth_m
+        # the tensor odometry has no minimum depth: too-near pixels become invalid (0)
+        keep = np.isfinite(depth) & (depth >= config.depth_min)
+        return np.ascontiguousarray(np.where(keep, depth, 0), dtype=np.float32)
+
+    def shrink(image: np.ndarray, by: int, interpolation: int) -> np.ndarray:
+        if by == 1:
+            return np.ascontiguousarray(image)
+        size = (intr.width // by, intr.height // by)
+        return np.ascontiguousarray(cv2.resize(image, size, interpolation=interpolation))
+
+    def camera(by: int) -> np.ndarray:
+        K = intr.K.copy()
+        if by > 1:
+            K[0, 0] /= by
+            K[1, 1] /= by
+            K[0, 2] = (intr.cx + 0.5) / by - 0.5
+            K[1, 2] = (intr.cy + 0.5) / by - 0.5
+        return K
+
+    def rgbd_image(frame: RgbdFrame, depth: np.ndarray):
+        return o3d.t.geometry.RGBDImage(
+            o3d.t.geometry.Image(shrink(frame.rgb, factor, cv2.INTER_AREA)),
+            o3d.t.geometry.Image(depth))
+
+    depth_prev, depth_curr = depth_of(prev), depth_of(curr)
+    dense_prev = shrink(depth_prev, factor, cv2.INTER_NEAREST)
+    dense_curr = shrink(depth_curr, factor, cv2.INTER_NEAREST)
+    criteria = [odometry.OdometryConvergenceCriteria(n) for n in levels]
+    params = odometry.OdometryLossParams(depth_outlier_trunc=config.depth_diff_max)
+    # source = current, target = previous: Open3D's result maps source into target
+    result = odometry.rgbd_odometry_multi_scale(
+        rgbd_image(curr, dense_curr), rgbd_image(prev, dense_prev),
+        o3d.core.Tensor(camera(factor), o3d.core.float64),
+        o3d.core.Tensor(T_init.matrix()), 1.0, config.depth_max, criteria,
+        getattr(odometry.Method, _TENSOR_METHODS[config.method]), params)
+    T = result.transformation.numpy()
+    if result.fitness <= 0:
+        return False, T, np.zeros((6, 6))
+    stride = max(1, int(config.information_stride))
+    if stride == factor:
+        info_prev, info_curr = dense_prev, dense_curr
+    else:
+        info_prev = shrink(depth_prev, stride, cv2.INTER_NEAREST)
+        info_curr = shrink(depth_curr, stride, cv2.INTER_NEAREST)
+    info = odometry.compute_odometry_information_matrix(
+        o3d.t.geometry.Image(info_curr), o3d.t.geometry.Image(info_prev),
+        o3d.core.Tensor(camera(stride), o3d.core.float64), result.transformation,
+        config.depth_diff_max, 1.0, config.depth_max)
+    return True, T, info.numpy()

@@ -35,15 +35,26 @@ class VpSlamConfig:
         Manhattan VPs as directions) or "none" (VO only: the paper's baseline)
     vp_distance : d of eq. (12) in metres
     gate_chi2 : Mahalanobis gate of eq. (15) (chi-square, 2 dof; default 99 %)
+    gate_recovery_frames : after this many consecutive frames whose VP updates were all
+        gated, the filter is taken to have been misled (a VO outlier beyond its covariance,
+        then the VO's pitch bias carries the state ever further from the VP, so every later
+        VP is gated too): the pose covariance is inflated by ``gate_recovery_scale`` times
+        the last VO covariance (an identity VO step: the missed error is taken to have the
+        VO's own shape, whose pitch and vertical motion are coupled, so the VP can correct
+        both) and the frame's VP is applied again; 0 disables it
+    gate_recovery_scale : multiple of the VO covariance added on a recovery
     vp_pixel_floor : px, added in quadrature to the detector's VP covariance
     vo_failure_sigma : (rad, m) per-frame standard deviations when VO fails
     voxel_size : m, the voxel filter of section 4 (5 cm in the paper)
     map_resolution : m, octree leaf size
     max_range : m, rays longer than this are cut in the map (-1: no limit)
-    backproject_stride : keep every n-th pixel row/column before the voxel filter
+    backproject_stride : keep every n-th pixel row/column before the voxel filter (4 at
+        640x480: 2.7 cm between samples at the Xtion's 3.5 m range, still denser than the
+        5 cm voxels, and a quarter of the points of stride 2)
     build_map : False skips clouds and octree
-    vo_scale : image scale for the RGB-D odometry only (0.5: a quarter of the pixels,
-        about 4x faster and about 4x noisier increments; VP and map keep full resolution)
+    vo_scale : image scale for the RGB-D odometry only (0.5: a quarter of the pixels;
+        on the simulated corridor ~3.8x faster with ~1.5x larger errors, covariance
+        calibrated for 320 px; VP and map keep full resolution)
     estimator : name of a registered filter estimator (``octofactor plugins``) whose
         ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter this
         pipeline steps (docs/plugins.md); the built-in is ``vp_ekf``
@@ -53,11 +64,13 @@ class VpSlamConfig:
     vp_distance: float = 1000.0
     gate_chi2: float = 9.21034037197618  # chi2.ppf(0.99, 2)
     vp_pixel_floor: float = 1.0
+    gate_recovery_frames: int = 3
+    gate_recovery_scale: float = 50.0
     vo_failure_sigma: tuple[float, float] = (0.05, 0.15)
     voxel_size: float = 0.05
     map_resolution: float = 0.05
     max_range: float = 5.0
-    backproject_stride: int = 2
+    backproject_stride: int = 4
     build_map: bool = True
     vo_scale: float = 1.0
     estimator: str = "vp_ekf"
@@ -150,6 +163,8 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
     failure_cov = np.diag([config.vo_failure_sigma[0] ** 2] * 3
                           + [config.vo_failure_sigma[1] ** 2] * 3)
     pixel_floor = np.eye(2) * config.vp_pixel_floor ** 2
+    last_vo_cov = failure_cov  # the shape of a recovery inflation (see the config)
+    gated_run = 0  # consecutive frames whose VP updates were all gated
 
     indices = range(n_frames)
     if progress:
@@ -204,7 +219,7 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
                             vo_result, (time.perf_counter() - t_vo) * 1e3)
                 if vo_result.success:
                     ekf.predict_vo(vo_result.T_prev_curr, vo_result.cov)
-                    T_guess = vo_result.T_prev_curr
+                    T_guess, last_vo_cov = vo_result.T_prev_curr, vo_result.cov
                 else:
                     skipped[f"vo: {_reason_class(vo_result.reason)}"] += 1
                     ekf.predict_vo(T_guess, failure_cov)
@@ -213,7 +228,21 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
         # --- vanishing points and EKF update
         t_vp = time.perf_counter()
         try:
-            _vp_step(ekf, config, frame, K, pixel_floor, counts, skipped)
+            detection = _vp_detect(config, frame, K, counts, skipped)
+            outcomes = _vp_update(ekf, config, detection, pixel_floor)
+            if outcomes and all(o.status == "gated" for o in outcomes):
+                gated_run += 1
+                if config.gate_recovery_frames and gated_run >= config.gate_recovery_frames:
+                    # the VO pitch bias drags a misled filter further away every frame:
+                    # widen the orientation and let this frame's VP pull it back
+                    ekf.predict_vo(gtsam.Pose3(), config.gate_recovery_scale * last_vo_cov)
+                    counts["vp_gate_recoveries"] += 1
+                    outcomes = _vp_update(ekf, config, detection, pixel_floor)
+                    gated_run = 0
+            elif outcomes:
+                gated_run = 0
+            for outcome in outcomes:
+                _count(outcome, counts, skipped)
         except OctofactorError as exc:  # a detector or update error skips this frame's update
             skipped[f"vp: error: {type(exc).__name__}"] += 1
         timings.vp_ekf.append((time.perf_counter() - t_vp) * 1e3)
@@ -324,35 +353,40 @@ def _make_tree(config: VpSlamConfig):
         return None, f"skipped: {exc}"
 
 
-def _vp_step(ekf, config, frame, K, pixel_floor, counts, skipped) -> None:
-    """Detect the VP(s) of one frame and update the filter (eq. (11)-(18))."""
+def _vp_detect(config, frame, K, counts, skipped):
+    """The frame's VP detection (None without one, or for vp_model "none"); counts it."""
     from perception.vanishing_points import detect_manhattan, detect_seed
 
     if config.vp_model == "none":
-        return
+        return None
     bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
     if config.vp_model == "point":
-        detection = detect_seed(bgr, K=K)
-        vp = detection.forward()
+        vp = detect_seed(bgr, K=K).forward()
         if vp is None:
             skipped["vp: none detected"] += 1
         else:
             counts["vp_detections"] += 1
-            _count(ekf.update_vp(vp.uv, _finite_cov(vp.cov) + pixel_floor),
-                   counts, skipped)
-    else:
-        detection = detect_manhattan(bgr, K)
-        if not detection.vps:
-            skipped["vp: none detected"] += 1
-        else:
-            counts["vp_detections"] += len(detection.vps)
-            uvs = [vp.uv for vp in detection.vps]
-            covs = [None if vp.uv is None else _finite_cov(vp.cov) + pixel_floor
-                    for vp in detection.vps]
-            outcomes = ekf.update_directions(
-                np.array([vp.direction for vp in detection.vps]), uvs, covs)
-            for outcome in outcomes:
-                _count(outcome, counts, skipped)
+        return vp
+    detection = detect_manhattan(bgr, K)
+    if not detection.vps:
+        skipped["vp: none detected"] += 1
+        return None
+    counts["vp_detections"] += len(detection.vps)
+    return detection
+
+
+def _vp_update(ekf, config, detection, pixel_floor) -> list:
+    """Update the filter with a detection (eq. (11)-(18)); the outcomes, not yet counted."""
+    if detection is None:
+        return []
+    if config.vp_model == "point":
+        return [ekf.update_vp(detection.uv, _finite_cov(detection.cov) + pixel_floor)]
+    uvs = [vp.uv for vp in detection.vps]
+    covs = [None if vp.uv is None else _finite_cov(vp.cov) + pixel_floor
+            for vp in detection.vps]
+    return list(ekf.update_directions(np.array([vp.direction for vp in detection.vps]), uvs,
+                                      covs))
+
 
 @dataclass(frozen=True)
 class _VoFailure:
@@ -421,6 +455,7 @@ def _report(config, counts, skipped, timings, positions, positions_gt, map_note,
         "vp_updates": int(counts["vp_updates"]),
         "vp_gated": int(counts["vp_gated"]),
         "vp_initialised": int(counts["vp_initialised"]),
+        "vp_gate_recoveries": int(counts["vp_gate_recoveries"]),
         "skipped_updates": dict(sorted(skipped.items())),
         "ate_rmse_m": None,
         "final_drift_xyz_m": None,

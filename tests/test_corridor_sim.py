@@ -1,6 +1,8 @@
 """perception.simulation.corridor: determinism, geometry, noise model, files and CLI."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -17,7 +19,7 @@ from perception.simulation.corridor import (
     simulate_corridor,
 )
 
-# 1 m of walk: 5 frames; short enough that the end wall is within the 8 m depth range
+# 1 m of walk: 5 frames; short enough that the end wall is within the 3.5 m depth range
 SHORT = CorridorConfig(seed=3, length=3.5, clutter=1)
 
 
@@ -51,9 +53,10 @@ def test_written_sequence_reads_back(tmp_path):
     np.testing.assert_allclose(sequence.timestamps, stamps)
     scene = build_corridor_scene(SHORT)
     rng = np.random.default_rng([SHORT.seed, 2])   # the writer's generator
-    for frame, pose in zip(sequence, poses):
+    _, open_poses = corridor_trajectory(SHORT, -SHORT.exposure_time)   # motion blur
+    for frame, pose, open_pose in zip(sequence, poses, open_poses):
         assert frame.T_world_camera_gt.equals(pose, 1e-8)
-        rgb, depth = render_frame(scene, pose, SHORT.intrinsics, rng)
+        rgb, depth = render_frame(scene, pose, SHORT.intrinsics, rng, open_pose)
         np.testing.assert_array_equal(frame.rgb, rgb)
         np.testing.assert_array_equal(frame.depth_m, depth)   # PNG step = render quantisation
     vp_stamps, uv, directions = read_vps_file(tmp_path / "vps.txt")
@@ -115,12 +118,16 @@ def test_noise_free_depth_matches_analytic_geometry():
 
 def test_depth_range_limits():
     config = CorridorConfig(seed=1, length=20.0)
+    assert (config.min_depth, config.max_depth) == (0.8, 3.5)   # the paper's Xtion (Table 1)
     scene = build_corridor_scene(config)
     _, poses = corridor_trajectory(config)
-    _, depth = render_frame(scene, poses[0], config.intrinsics, rng=None)
-    assert depth[239, 319] == 0.0            # end wall 19.5 m away: beyond the Xtion's 8 m
-    assert depth.max() <= config.max_depth
-    assert depth[depth > 0].min() >= config.min_depth
+    for rng in (None, np.random.default_rng(3)):
+        _, depth = render_frame(scene, poses[0], config.intrinsics, rng=rng)
+        assert depth[239, 319] == 0.0         # end wall 19.5 m away: beyond 3.5 m
+        assert depth.max() <= config.max_depth
+        assert depth[depth > 0].min() >= config.min_depth
+        # the walls within 3.5 m are measured: the image's side columns
+        assert np.mean(depth[:, :100] > 0) > 0.5
 
 
 def test_depth_noise_follows_the_xtion_model():
@@ -132,7 +139,7 @@ def test_depth_noise_follows_the_xtion_model():
     _, noisy = render_frame(scene, poses[0], intr, rng=np.random.default_rng(7))
     both = (exact > 0) & (noisy > 0)
     normalised = (noisy[both] - exact[both]) / exact[both] ** 2
-    # sigma = 1.5e-3 z^2; quantisation (0.2 mm) adds little at these depths
+    # sigma = 1.425e-3 z^2 (Khoshelham & Elberink); the 0.2 mm PNG step adds little
     assert np.std(normalised) == pytest.approx(SHORT.depth_noise, rel=0.1)
     assert abs(np.mean(normalised)) < 1e-4
     dropped = np.mean((exact > 0) & (noisy == 0))
@@ -173,3 +180,70 @@ def test_cli_writes_a_sequence(tmp_path, capsys):
     assert len(TumRgbdSequence(out)) == 5
     assert main(["simulate", "corridor", str(out), "--width", "0", "--quiet"]) == 2
     assert "positive" in capsys.readouterr().err
+
+
+def _noise_free(config, k=1, open_pose=False):
+    scene = build_corridor_scene(config)
+    _, poses = corridor_trajectory(config)
+    opened = corridor_trajectory(config, -config.exposure_time)[1][k] if open_pose else None
+    return render_frame(scene, poses[k], config.intrinsics, None, opened)
+
+
+def test_vignetting_darkens_the_corners_by_the_configured_share():
+    rgb0, _ = _noise_free(replace(SHORT, vignetting=0.0))
+    rgb1, _ = _noise_free(replace(SHORT, vignetting=0.3))
+    ratio = rgb1.astype(float).sum(axis=2) / np.maximum(rgb0.astype(float).sum(axis=2), 1)
+    assert ratio[239, 319] == pytest.approx(1.0, abs=0.02)
+    for v, u in [(0, 0), (0, 639), (479, 0), (479, 639)]:
+        assert ratio[v, u] == pytest.approx(0.7, abs=0.03)
+    assert ratio[239, 0] < ratio[239, 200] < ratio[239, 319] + 0.01   # smooth fall-off
+
+
+def test_exposure_jitter_changes_the_brightness_per_frame():
+    scene = build_corridor_scene(replace(SHORT, exposure_jitter=0.1, rgb_noise=0.0))
+    steady = build_corridor_scene(replace(SHORT, exposure_jitter=0.0, rgb_noise=0.0))
+    _, poses = corridor_trajectory(SHORT)
+    rng = np.random.default_rng(4)
+    gains = []
+    for seed in range(6):
+        a, _ = render_frame(scene, poses[0], SHORT.intrinsics, np.random.default_rng(seed))
+        b, _ = render_frame(steady, poses[0], SHORT.intrinsics, np.random.default_rng(seed))
+        gains.append(a.astype(float).mean() / b.astype(float).mean())
+    assert np.std(np.log(gains)) == pytest.approx(0.1, rel=0.6)
+    # without jitter and noise, two noisy renders have the same colours
+    a, _ = render_frame(steady, poses[0], SHORT.intrinsics, rng)
+    b, _ = render_frame(steady, poses[0], SHORT.intrinsics, rng)
+    np.testing.assert_array_equal(a, b)
+
+
+def test_motion_blur_smears_the_periphery_not_the_centre():
+    config = replace(SHORT, exposure_time=0.05, blur_samples=5)
+    sharp, depth_sharp = _noise_free(config)
+    blurred, depth_blurred = _noise_free(config, open_pose=True)
+    np.testing.assert_array_equal(depth_sharp, depth_blurred)      # depth is at t
+    diff = np.abs(sharp.astype(float) - blurred.astype(float)).sum(axis=2)
+    # forward motion: the image flow, hence the blur, grows away from the focus of expansion
+    assert diff[200:280, 280:360].mean() < 0.5 * diff[:, :80].mean()
+    assert diff.max() > 10
+    # zero exposure time: no blur even with the shutter-open pose
+    none, _ = _noise_free(replace(config, exposure_time=0.0), open_pose=True)
+    np.testing.assert_array_equal(none, sharp)
+
+
+def test_disparity_tilt_bends_depth_as_modelled():
+    # noise, dropouts and quantisation off: only the systematic disparity offset remains
+    config = replace(SHORT, depth_noise=0.0, dropout=0.0, disparity_step=0.0,
+                     disparity_tilt=(0.0, 0.1))
+    scene = build_corridor_scene(config)
+    _, poses = corridor_trajectory(config)
+    _, exact = render_frame(scene, poses[0], config.intrinsics, None)
+    _, tilted = render_frame(scene, poses[0], config.intrinsics, np.random.default_rng(1))
+    intr = config.intrinsics
+    fb = intr.fx * config.baseline
+    v = np.arange(intr.height, dtype=float)[:, None] * np.ones((1, intr.width))
+    offset = 0.1 * (v - intr.cy) / (intr.height - 1 - intr.cy)
+    expected = fb / (fb / exact.astype(float) + offset)
+    both = (exact > 0) & (tilted > 0)
+    np.testing.assert_allclose(tilted[both], expected[both], atol=1.5e-4)  # PNG step 0.2 mm
+    # top rows nearer than the truth would be farther: the sign follows the offset
+    assert np.mean(tilted[both & (v > 400)] - exact[both & (v > 400)]) < -1e-3

@@ -9,9 +9,22 @@ The scene is what the seed paper's robot saw: plain walls, floor and ceiling wit
 different colours, door frames and panels (edges that the vanishing-point detectors use),
 a skirting board, ceiling lamps, faint surface texture (so that photometric odometry has
 something) and optional clutter boxes. Depth gets Xtion-like noise: Gaussian with
-sigma = ``depth_noise`` * z^2, then the structured-light disparity quantisation (1/8 px,
-steps of ~z^2 / 315 m), stored with the PNG step 1/depth_scale; nothing nearer than
-``min_depth`` or beyond ``max_depth``, nothing at grazing incidence, and random dropouts.
+sigma = ``depth_noise`` * z^2 (Khoshelham & Elberink 2012), optionally a systematic
+disparity offset, then the structured-light disparity quantisation (1/8 px, steps of
+~z^2 / 315 m), stored with the PNG step 1/depth_scale; nothing nearer than ``min_depth`` or
+beyond ``max_depth`` (0.8-3.5 m, the sensor's specified range), nothing at grazing
+incidence, and random dropouts.
+
+The colour camera is a consumer one: grey-level noise, lens vignetting (fixed in the image,
+so a scene point darkens as it moves outward), a small per-frame auto-exposure change and
+motion blur over the shutter time. Together with the short depth range and the faint
+texture these are what make frame-to-frame RGB-D odometry drift in such a corridor: on the
+default corridor Open3D's hybrid odometry errs by ~2 mrad per frame in pitch, almost
+entirely correlated with a vertical translation error (a rotation about the scene ~3 m
+ahead), which piles up to metres of height drift over 25 m, as the seed paper reports for
+its VO (docs/vp_ekf.md). ``disparity_tilt`` (a depth error linear across the image, as
+after a structured-light reference calibrated against a slightly tilted plane) is off by
+default.
 
 In memory::
 
@@ -76,9 +89,11 @@ class CorridorConfig:
     yaw_amplitude_deg, pitch_amplitude_deg, roll_amplitude_deg : float
         Small head motions (degrees); yaw follows the zigzag, pitch/roll bob at other rates.
     depth_noise : float
-        Xtion depth noise coefficient: sigma = depth_noise * z^2 (m); 0 disables noise.
+        Axial depth noise coefficient: sigma = depth_noise * z^2 (m); 0 disables noise.
+        Default 1.425e-3 (Kinect, Khoshelham & Elberink 2012).
     min_depth, max_depth : float
-        Depth measured only in [min_depth, max_depth] (m).
+        Depth measured only in [min_depth, max_depth] (m). Default 0.8-3.5 m: the Xtion
+        Pro Live's specified range (the seed paper's Table 1).
     dropout : float
         Probability that a depth pixel is missing at random.
     disparity_step : float
@@ -89,10 +104,29 @@ class CorridorConfig:
         Projector-camera baseline (m) for the disparity quantisation (Xtion: 0.075).
     grazing_cos : float
         Depth is missing where |cos(incidence)| < grazing_cos.
+    disparity_tilt : tuple of float
+        Systematic disparity offset (pixels) at the right and at the bottom image edge,
+        linear across the image (a reference pattern calibrated against a slightly tilted
+        plane; see the module notes); 0 disables it.
     rgb_noise : float
-        Standard deviation of the colour noise (grey levels).
+        Standard deviation of the colour noise (grey levels; default 2, a consumer
+        sensor's luminance noise indoors).
+    vignetting : float
+        Relative brightness loss at the image corners, falling off with the squared
+        distance from the principal point (default 0.1; 0: none). Moving scene points
+        change brightness across the image, against photometric odometry's assumption.
+    exposure_jitter : float
+        Standard deviation of the per-frame log exposure gain (auto-exposure; default
+        0.005, i.e. ~1 grey level; 0: none).
+    exposure_time : float
+        Shutter time (s): the colour image integrates the motion over
+        [t - exposure_time, t] (motion blur; default 10 ms; 0: none); depth and ground
+        truth are at t.
+    blur_samples : int
+        Sub-images averaged for the motion blur.
     texture : float
-        Relative amplitude of the faint surface texture (0 = flat colours).
+        Relative amplitude of the faint surface texture (0 = flat colours; default 0.03:
+        painted walls, a feature-poor corridor).
     door_spacing : float
         Mean distance between doors along the corridor (alternating sides).
     intrinsics : CameraIntrinsics
@@ -114,15 +148,20 @@ class CorridorConfig:
     yaw_amplitude_deg: float = 3.0
     pitch_amplitude_deg: float = 1.0
     roll_amplitude_deg: float = 0.5
-    depth_noise: float = 1.5e-3
-    min_depth: float = 0.5
-    max_depth: float = 8.0
+    depth_noise: float = 1.425e-3
+    min_depth: float = 0.8
+    max_depth: float = 3.5
     dropout: float = 0.01
     disparity_step: float = 0.125
     baseline: float = 0.075
     grazing_cos: float = 0.08
-    rgb_noise: float = 1.0
-    texture: float = 0.05
+    disparity_tilt: tuple[float, float] = (0.0, 0.0)
+    rgb_noise: float = 2.0
+    vignetting: float = 0.1
+    exposure_jitter: float = 0.005
+    exposure_time: float = 0.01
+    blur_samples: int = 3
+    texture: float = 0.03
     door_spacing: float = 4.0
     intrinsics: CameraIntrinsics = field(default=XTION_640)
 
@@ -139,6 +178,11 @@ class CorridorConfig:
             raise PerceptionError("zigzag_amplitude must be less than half the width")
         if self.clutter < 0 or not 0 <= self.dropout < 1:
             raise PerceptionError("clutter must be >= 0 and dropout in [0, 1)")
+        if not 0 <= self.vignetting < 1 or self.exposure_jitter < 0 or self.exposure_time < 0:
+            raise PerceptionError("vignetting must be in [0, 1), exposure_jitter and "
+                                  "exposure_time >= 0")
+        if self.blur_samples < 1 or len(self.disparity_tilt) != 2:
+            raise PerceptionError("blur_samples must be >= 1 and disparity_tilt two numbers")
 
 
 @dataclass(frozen=True)
@@ -288,19 +332,20 @@ def _smooth_periodic(field_: np.ndarray, sigma_texels: float) -> np.ndarray:
     return np.real(np.fft.ifft2(np.fft.fft2(field_) * gain)).astype(np.float32)
 
 
-def corridor_trajectory(config: CorridorConfig = CorridorConfig()
+def corridor_trajectory(config: CorridorConfig = CorridorConfig(), time_offset: float = 0.0
                         ) -> tuple[np.ndarray, list[gtsam.Pose3]]:
     """Return (timestamps (N,) s, poses T_world_camera) of the walk along the corridor.
 
     x = start_x + speed t, y = A sin(2 pi x / wavelength), z = camera_height; yaw follows the
     sway (peak ``yaw_amplitude_deg`` where the path crosses the centre line), pitch and roll
-    bob slowly. Timestamps are k * period.
+    bob slowly. Timestamps are k * period; the poses are taken at the timestamps plus
+    ``time_offset`` (``-config.exposure_time``: where each exposure starts).
     """
     config.validate()
     travel = config.length - config.end_margin - config.start_x
     n_frames = int(np.floor(travel / (config.speed * config.period) + 1e-9)) + 1
     stamps = np.arange(n_frames) * config.period
-    x = config.start_x + config.speed * stamps
+    x = config.start_x + config.speed * (stamps + time_offset)
     phase = 2 * np.pi * (x - config.start_x) / config.zigzag_wavelength
     y = config.zigzag_amplitude * np.sin(phase)
     yaw = np.deg2rad(config.yaw_amplitude_deg) * np.cos(phase)
@@ -337,47 +382,113 @@ def _pixel_directions(intr: CameraIntrinsics) -> np.ndarray:
                      np.ones(u.size)], axis=1).astype(np.float32)
 
 
-_DIRECTION_CACHE: dict[CameraIntrinsics, np.ndarray] = {}
-
-
 def render_frame(scene: CorridorScene, T_world_camera: gtsam.Pose3, intr: CameraIntrinsics,
-                 rng: np.random.Generator | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 rng: np.random.Generator | None = None,
+                 T_world_camera_open: gtsam.Pose3 | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
     """Return (rgb (H,W,3) uint8, depth_m (H,W) float32) seen from ``T_world_camera``.
 
     With ``rng`` None the images are noise-free (exact z-depth, no dropouts, no quantisation,
-    only the min/max depth limits); with an ``rng`` the depth gets the Xtion-like noise of
-    ``scene.config`` and is quantised to 1/depth_scale, and the colour gets pixel noise.
-    Depth 0 means no measurement.
+    no exposure change, only the min/max depth limits and the lens vignetting); with an
+    ``rng`` the depth gets the Xtion-like noise and systematic disparity offset of
+    ``scene.config`` and is quantised to 1/depth_scale, and the colour gets the exposure
+    change and pixel noise. ``T_world_camera_open`` (the pose when the shutter opened, e.g.
+    from ``corridor_trajectory(config, -config.exposure_time)``) adds the motion blur of
+    the path from there to ``T_world_camera``. Depth 0 means no measurement.
     """
     import open3d as o3d
 
     config = scene.config
-    if intr not in _DIRECTION_CACHE:
-        _DIRECTION_CACHE[intr] = _pixel_directions(intr)
-    directions_camera = _DIRECTION_CACHE[intr]
-    make_rays, shade = _kernels()
+    key = (intr, config.vignetting, tuple(config.disparity_tilt))
+    if key not in _PIXEL_CACHE:
+        _PIXEL_CACHE[key] = _pixel_maps(intr, config)
+    directions_camera, vignette, disparity_offset = _PIXEL_CACHE[key]
+    make_rays, shade, _ = _kernels()
     rays = make_rays(directions_camera, T_world_camera.rotation().matrix().astype(np.float32),
                      np.asarray(T_world_camera.translation(), dtype=np.float32))
     hits = scene.raycasting.cast_rays(o3d.core.Tensor.from_numpy(rays))
     noisy = rng is not None
     # one seed per frame drawn from the caller's generator: a seed gives identical frames
     frame_seed = int(rng.integers(0, 2 ** 31 - 1)) if noisy else 0
-    rgb, depth = shade(
-        rays, hits["t_hit"].numpy(), hits["geometry_ids"].numpy(),
+    t_hit = hits["t_hit"].numpy()
+    radiance, depth = shade(
+        rays, t_hit, hits["geometry_ids"].numpy(),
         hits["primitive_ids"].numpy(), hits["primitive_normals"].numpy(),
         scene.geometry_offset, scene.triangle_albedo, scene.lamps, scene.texture,
         np.float32(config.texture), np.float32(_TEXEL), noisy, frame_seed,
-        np.float32(config.rgb_noise), np.float32(config.depth_noise), np.float32(config.dropout),
+        np.float32(config.depth_noise), np.float32(config.dropout),
         np.float32(config.grazing_cos), np.float32(config.min_depth),
         np.float32(config.max_depth), np.float32(intr.depth_scale),
-        np.float64(intr.fx * config.baseline), np.float64(config.disparity_step))
+        np.float64(intr.fx * config.baseline), np.float64(config.disparity_step),
+        disparity_offset)
+    radiance = radiance.reshape(intr.height, intr.width, 3)
+    if (T_world_camera_open is not None and config.exposure_time > 0
+            and config.blur_samples > 1):
+        radiance = _motion_blur(radiance, t_hit, directions_camera,
+                                T_world_camera_open.between(T_world_camera), intr,
+                                config.blur_samples)
+    gain = vignette
+    if noisy:
+        frame_rng = np.random.default_rng(frame_seed)
+        if config.exposure_jitter > 0:
+            gain = gain * np.float32(np.exp(config.exposure_jitter
+                                            * frame_rng.standard_normal()))
+        # one grey-level noise value per pixel (the sensor's luminance noise)
+        grey = frame_rng.standard_normal((intr.height, intr.width), dtype=np.float32)
+        value = radiance * gain[..., None] + (np.float32(config.rgb_noise) * grey)[..., None]
+    else:
+        value = radiance * gain[..., None]
+    rgb = np.clip(np.rint(value), 0, 255).astype(np.uint8)
     if noisy:
         # the same float32 division as perception.rgbd.read_depth: files and memory agree
         depth = np.minimum(depth, np.float32(np.iinfo(np.uint16).max)) / np.float32(
             intr.depth_scale)
-    return rgb.reshape(intr.height, intr.width, 3), depth.reshape(intr.height, intr.width)
+    return rgb, depth.reshape(intr.height, intr.width)
 
 
+def _pixel_maps(intr: CameraIntrinsics, config: CorridorConfig
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(ray directions (H*W, 3), vignetting gain (H, W), disparity offset (H*W,)) per pixel."""
+    directions = _pixel_directions(intr)
+    u, v = np.meshgrid(np.arange(intr.width, dtype=np.float64),
+                       np.arange(intr.height, dtype=np.float64))
+    du, dv = u - intr.cx, v - intr.cy
+    corner2 = max(intr.cx, intr.width - 1 - intr.cx) ** 2 + max(
+        intr.cy, intr.height - 1 - intr.cy) ** 2
+    vignette = (1.0 - config.vignetting * (du ** 2 + dv ** 2) / corner2).astype(np.float32)
+    tilt_u, tilt_v = config.disparity_tilt
+    offset = (tilt_u * du / max(intr.width - 1 - intr.cx, 1.0)
+              + tilt_v * dv / max(intr.height - 1 - intr.cy, 1.0))
+    return directions, vignette, offset.ravel().astype(np.float64)
+
+
+def _motion_blur(radiance: np.ndarray, t_hit: np.ndarray, directions: np.ndarray,
+                 T_open_close: gtsam.Pose3, intr: CameraIntrinsics, samples: int) -> np.ndarray:
+    """The image averaged over the exposure: each pixel sampled along its own image motion.
+
+    The flow of every pixel from the shutter-open camera to the final one follows from its
+    noise-free depth (linear in time; occlusions during the exposure are ignored, they are
+    sub-pixel here). ``cv2.remap`` samples the final image along that path.
+    """
+    import cv2
+
+    flow = _kernels()[2]
+    # where a pixel's scene point sits in the final image earlier in the exposure
+    flow_u, flow_v = flow(directions, t_hit, T_open_close.rotation().matrix(),
+                          np.asarray(T_open_close.translation(), dtype=np.float64),
+                          intr.fx, intr.fy, intr.cx, intr.cy, intr.width)
+    shape = (intr.height, intr.width)
+    flow_u, flow_v = flow_u.reshape(shape), flow_v.reshape(shape)
+    u, v = np.meshgrid(np.arange(intr.width, dtype=np.float32),
+                       np.arange(intr.height, dtype=np.float32))
+    total = np.zeros_like(radiance)
+    for s in np.linspace(0.0, 1.0, samples, dtype=np.float32):
+        total += cv2.remap(radiance, u + s * flow_u, v + s * flow_v, cv2.INTER_LINEAR,
+                           borderMode=cv2.BORDER_REPLICATE)
+    return total / np.float32(samples)
+
+
+_PIXEL_CACHE: dict = {}
 _KERNELS = None
 
 
@@ -385,9 +496,11 @@ def _kernels():
     """The compiled ray and per-pixel shading kernels (numba, compiled on first use, cached).
 
     Per pixel: albedo of the hit triangle x (ambient + diffuse light of the ceiling lamps,
-    which are fixed in the world so brightness is constant across frames, as photometric
-    odometry assumes) x (1 + faint texture), plus grey-level noise. The texture is a
-    bilinear lookup of a periodic random field in each plane's own two coordinates.
+    which are fixed in the world) x (1 + faint texture), in grey levels before the camera's
+    vignetting, exposure gain and noise (applied by :func:`render_frame`). The texture is a
+    bilinear lookup of a periodic random field in each plane's own two coordinates. Depth:
+    Xtion-like noise on the z-depth, the systematic disparity offset, then the disparity
+    quantisation.
     """
     global _KERNELS
     if _KERNELS is not None:
@@ -409,13 +522,13 @@ def _kernels():
 
     @numba.njit(cache=True, fastmath=True, nogil=True)
     def kernel(rays, t_hit, geometry, primitive, normals, offsets, albedo, lamps, texture,
-               amplitude, texel, noisy, seed, rgb_sigma, depth_coefficient, dropout,
+               amplitude, texel, noisy, seed, depth_coefficient, dropout,
                grazing_cos, min_depth, max_depth, depth_scale, focal_baseline,
-               disparity_step):
+               disparity_step, disparity_offset):
         if noisy:
             np.random.seed(seed)  # numba's own generator state, not NumPy's
         n = t_hit.shape[0]
-        out = np.zeros((n, 3), dtype=np.uint8)
+        out = np.zeros((n, 3), dtype=np.float32)
         depth = np.zeros(n, dtype=np.float32)
         for i in range(n):
             t = t_hit[i]
@@ -462,10 +575,8 @@ def _kernels():
                    + (texture[j1, i0] * (1 - fs) + texture[j1, i1] * fs) * fr)
             gain = shade * (1.0 + amplitude * tex) * 255.0
             row = offsets[geometry[i]] + primitive[i]
-            grey = rgb_sigma * np.random.standard_normal() if noisy else 0.0
             for c in range(3):
-                value = albedo[row, c] * gain + grey
-                out[i, c] = np.uint8(min(max(np.rint(value), 0.0), 255.0))
+                out[i, c] = albedo[row, c] * gain
             # depth: t is the z-depth because the camera-frame ray has unit z
             if t < min_depth or t > max_depth:
                 continue
@@ -477,15 +588,38 @@ def _kernels():
                 # Xtion-like: sigma grows with z^2; stored with the PNG's step 1/depth_scale
                 # (stored as PNG counts here; divided outside exactly as the reader does)
                 z = t + depth_coefficient * np.random.standard_normal() * t * t
+                disparity = focal_baseline / z + disparity_offset[i]
                 if disparity_step > 0.0:
-                    disparity = focal_baseline / z
-                    z = focal_baseline / (np.rint(disparity / disparity_step) * disparity_step)
+                    disparity = np.rint(disparity / disparity_step) * disparity_step
+                if disparity <= 0.0:
+                    continue
+                z = focal_baseline / disparity
+                if z < min_depth or z > max_depth:
+                    continue
                 depth[i] = np.rint(z * depth_scale)
             else:
                 depth[i] = t
         return out, depth
 
-    _KERNELS = (make_rays, kernel)
+    @numba.njit(cache=True, nogil=True)
+    def flow(directions, t_hit, R, t, fx, fy, cx, cy, width):
+        # the final camera's point of each pixel seen from the shutter-open camera
+        n = t_hit.shape[0]
+        flow_u = np.zeros(n, dtype=np.float32)
+        flow_v = np.zeros(n, dtype=np.float32)
+        for i in range(n):
+            depth = t_hit[i]
+            if not np.isfinite(depth):
+                continue
+            px, py, pz = directions[i, 0] * depth, directions[i, 1] * depth, depth
+            x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+            y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+            z = max(R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2], 1e-3)
+            flow_u[i] = (i % width) - (fx * x / z + cx)
+            flow_v[i] = (i // width) - (fy * y / z + cy)
+        return flow_u, flow_v
+
+    _KERNELS = (make_rays, kernel, flow)
     return _KERNELS
 
 
@@ -505,6 +639,8 @@ def simulate_corridor(out_dir: str | os.PathLike, config: CorridorConfig = Corri
     intr = config.intrinsics
     scene = build_corridor_scene(config)
     stamps, poses = corridor_trajectory(config)
+    open_poses = (corridor_trajectory(config, -config.exposure_time)[1]
+                  if config.exposure_time > 0 else [None] * len(poses))
     rng = np.random.default_rng([config.seed, 2])
     names = [f"{stamp:.6f}.png" for stamp in stamps]
     frames = range(len(stamps))
@@ -513,7 +649,7 @@ def simulate_corridor(out_dir: str | os.PathLike, config: CorridorConfig = Corri
 
         frames = tqdm(frames, desc="corridor", unit="frame")
     for k in frames:
-        rgb, depth = render_frame(scene, poses[k], intr, rng)
+        rgb, depth = render_frame(scene, poses[k], intr, rng, open_poses[k])
         with atomic_write(out / "rgb" / names[k], "wb") as handle:
             handle.write(encode_rgb_png(rgb))
         with atomic_write(out / "depth" / names[k], "wb") as handle:
