@@ -179,3 +179,14 @@ def test_gate_recovery_reopens_a_filter_that_gates_every_vp(corridor_640):
     for report in (stuck, recovered):   # each detection is counted once
         assert report["vp_updates"] + report["vp_gated"] + report["vp_initialised"] \
             == report["vp_detections"]
+
+
+def test_final_sigma_is_world_frame_like_the_drift(corridor):
+    from pipelines.vpslam import VpSlamConfig, run_vpslam
+
+    result = run_vpslam(corridor, None, VpSlamConfig(build_map=False), progress=False)
+    sigma = np.asarray(result.report["final_position_sigma_m"])
+    np.testing.assert_allclose(sigma, np.sqrt(np.diag(result.position_covs[-1])))
+    # the camera looks along world x: its forward (z) sigma is the world x sigma, not world z
+    R_wc = result.graph.nodes[result.graph.sorted_ids()[-1]].pose.rotation().matrix()
+    assert abs(R_wc[0, 2]) > 0.9
