@@ -7,12 +7,16 @@ Every timed row gives two ratios: by CPU time (process time, summed over threads
 time. liboctomap (the Debian / PyPI octomap-python build) is single-threaded; our insertion marks
 the rays of a scan on numba's thread count (NUMBA_NUM_THREADS), everything else is one thread.
 
-    .venv/bin/python benchmarks/octree.py [--quick] [--repeats N]
+    .venv/bin/python benchmarks/octree.py [--quick] [--repeats N] [--only SECTION] [--res R]
+
+The insertion rows alternate our runs with liboctomap's (so a change of machine load hits both
+sides alike) and take the median of ``--repeats`` runs of each.
 """
 from __future__ import annotations
 
 import argparse
 import bz2
+import os
 import statistics
 import sys
 import tempfile
@@ -42,6 +46,20 @@ def median_time(fn, repeats: int) -> tuple[float, float]:
         cpu.append(time.process_time() - c0)
         wall.append(time.perf_counter() - w0)
     return statistics.median(cpu), statistics.median(wall)
+
+
+def paired_times(fn_ours, fn_ref, repeats: int, ref_repeats: int | None = None):
+    """Median (CPU, wall) times of ``fn_ours`` and ``fn_ref``, their runs alternating."""
+    ref_repeats = repeats if ref_repeats is None else ref_repeats
+    times = {0: ([], []), 1: ([], [])}
+    for r in range(max(repeats, ref_repeats)):
+        for side, fn, reps in ((0, fn_ours, repeats), (1, fn_ref, ref_repeats)):
+            if r < reps:
+                c0, w0 = time.process_time(), time.perf_counter()
+                fn()
+                times[side][0].append(time.process_time() - c0)
+                times[side][1].append(time.perf_counter() - w0)
+    return tuple((statistics.median(times[s][0]), statistics.median(times[s][1])) for s in (0, 1))
 
 
 def row(name: str, ours: float, ref: float, unit: str, higher_is_better: bool = True) -> None:
@@ -85,6 +103,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="smaller corridor, fewer repeats")
     ap.add_argument("--repeats", type=int, default=None)
+    ap.add_argument("--only", choices=("insert", "queries", "memory", "files"), default=None,
+                    help="run one section only")
+    ap.add_argument("--res", type=float, default=None,
+                    help="insertion rows at this resolution only (0.1 or 0.05)")
     args = ap.parse_args()
     repeats = args.repeats or (3 if args.quick else 5)
     data = REPO.parent / "shared" / "data" / "octomap"
@@ -106,25 +128,38 @@ def main() -> int:
     from numba import get_num_threads
 
     print(f"# mapping.OcTree vs liboctomap (octomap-python), medians of {repeats} repeats "
-          "(liboctomap: 1 run for the corridor and the per-call queries)")
+          "(liboctomap: 1 run for the per-call queries)")
     print("# throughputs by CPU time (summed over threads); ratios by CPU time and by wall time")
     print(f"# liboctomap (Debian/PyPI build) is single-threaded; our insertion marks rays on "
           f"{get_num_threads()} thread(s) (numba's default, NUMBA_NUM_THREADS), all else 1 thread")
+    print(f"# load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    n_scans, n_pts = (10, 20_000) if args.quick else (50, 100_000)
+    scans = corridor_scans(n_scans, n_pts)
+    resolutions = (0.1, 0.05) if args.res is None else (args.res,)
+    if args.only in (None, "insert"):
+        insertion_rows(scan, scan64, zero, scans, resolutions, repeats)
+    if args.only in (None, "queries", "memory", "files"):
+        other_rows(args, data, scan, zero, scans, repeats)
+    print(f"# load average at end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return 0
+
+
+def insertion_rows(scan, scan64, zero, scans, resolutions, repeats) -> None:
+    """Insertion throughput of scan.dat and of the growing corridor map, both sides alternating."""
     print("## insertion, scan.dat (88,206 points, one scan from the origin)")
     for res, max_range in ((0.1, -1.0), (0.1, 10.0), (0.05, 10.0), (0.05, -1.0)):
-        t_ours = median_time(
+        if res not in resolutions:
+            continue
+        t_ours, t_ref = paired_times(
             lambda res=res, mr=max_range: OcTree(res).insert_point_cloud(scan, zero, mr),
-            repeats)
-        t_ref = median_time(
             lambda res=res, mr=max_range: octomap.OcTree(res).insertPointCloud(
                 scan64, zero, maxrange=mr), repeats)
         trow(f"insert scan.dat res {res} max_range {max_range:g}", len(scan), t_ours,
              len(scan), t_ref, "Mpts/s", 1e6)
 
-    n_scans, n_pts = (10, 20_000) if args.quick else (50, 100_000)
-    scans = corridor_scans(n_scans, n_pts)
+    n_scans, n_pts = len(scans), scans[0][0].shape[0]
     print(f"## insertion, synthetic corridor {n_scans} scans x {n_pts} points (map grows)")
-    for res in (0.1, 0.05):
+    for res in resolutions:
         def ours(res=res):
             t = OcTree(res)
             for p, o in scans:
@@ -137,16 +172,27 @@ def main() -> int:
                 t.insertPointCloud(p.astype(np.float64), o, maxrange=10.0)
             return t
 
-        t_ours = median_time(ours, max(1, repeats // 2))
-        t_ref = median_time(ref, 1)
+        t_ours, t_ref = paired_times(ours, ref, repeats)
         total = n_scans * n_pts
         trow(f"insert corridor res {res} max_range 10", total, t_ours, total, t_ref, "Mpts/s",
              1e6)
 
+
+def other_rows(args, data, scan, zero, scans, repeats) -> None:
+    """Queries, memory and files on maps built from scan.dat, the corridor and geb079.bt."""
     tree = OcTree(0.05)
     tree.insert_point_cloud(scan, zero, 10.0)
     ref_tree = octomap.OcTree.read(tree.to_bytes_ot())
     rng = np.random.default_rng(0)
+    if args.only in (None, "queries"):
+        query_rows(tree, ref_tree, rng, zero, repeats)
+    if args.only in (None, "memory"):
+        memory_rows(tree, ref_tree, scans)
+    if args.only in (None, "files"):
+        file_rows(data, repeats)
+
+
+def query_rows(tree, ref_tree, rng, zero, repeats) -> None:
     print(f"## queries on scan.dat at 0.05 m, max range 10 ({tree.size()} nodes)")
     q = rng.uniform(-10, 10, size=(1_000_000, 3)).astype(np.float32)
     t_ours = median_time(lambda: tree.search(q), repeats)
@@ -192,6 +238,9 @@ def main() -> int:
     trow("leaf traversal (arrays vs iterator)", n_leaves, t_ours, n_leaves, t_ref, "Mleaf/s",
          1e6)
 
+
+
+def memory_rows(tree, ref_tree, scans) -> None:
     print("## memory (ratio = liboctomap memoryUsage / ours allocated)")
     grown = OcTree(0.05)
     for p, o in scans:
@@ -205,6 +254,9 @@ def main() -> int:
     row("corridor 0.05 m after compact()", grown.memory_bytes(), ref_grown.memoryUsage(), "B",
         higher_is_better=False)
 
+
+
+def file_rows(data, repeats) -> None:
     print("## files (geb079.bt, 532,566 nodes)")
     geb = data / "geb079.bt"
     with tempfile.TemporaryDirectory() as tmp:
@@ -225,7 +277,6 @@ def main() -> int:
         t_ours = median_time(lambda: OcTree.read(out), repeats)
         t_ref = median_time(lambda: octomap.OcTree.read(str(out).encode()), repeats)
         trow(".ot read", 1, t_ours, 1, t_ref, "files/s")
-    return 0
 
 
 if __name__ == "__main__":

@@ -17,7 +17,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 TREE_DEPTH = 16
 KEY_OFFSET = 32768
@@ -424,59 +426,246 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
     return n
 
 
-@njit(cache=True, nogil=True)
-def sort_rays(points, res):
-    """The points reordered by the Morton code of their endpoint key (coarsened to 16 bits).
+@njit(cache=True)
+def _mark_rays_grid(pts, ox, oy, oz, ok0, res, max_range, i0, pool, bcodes, counters, gdir, glo,
+                    ghi, gdx, gdxy, slow):
+    """Mark the rays i0.. that lie in the brick grid (fast path); list the others in ``slow``.
 
-    Rays that end close together walk mostly the same bricks; marking them one after the other
-    keeps those bricks in cache (the synthetic corridor, whose points come in random directions,
-    marks up to twice as fast). The key sets are a union over the rays, so any order gives the
-    same result. Keys are taken relative to their minimum (absolute keys straddle 32768, where
-    every Morton bit flips). Counting sort: O(n + 65536).
+    The grid directory ``gdir`` maps each 8^3 brick of the key box [glo, glo + 8 * dims) to its
+    brick index (-1 = none yet), so a step finds its cell without a per-step brick test. A ray
+    is walked here when its origin and end keys are in [glo + 2, ghi - 2] (ghi <= 65535): a
+    computeRayKeys walk never leaves the key box of its two end cells by more than one cell,
+    so it stays in the grid and no key wraps around. The walk replays computeRayKeys exactly:
+    the next step is on the axis of smallest tMax (ties to z, then y), the first step is always
+    taken, and a cell is on the ray when the ray leaves it no later than its length (the
+    loop's tMax > length test) and it is not the end cell, which can only be reached after
+    |dkx| + |dky| + |dkz| steps (each axis moves one way). New bricks get the next index and
+    their code in ``bcodes`` (the caller puts them in the hash table afterwards).
+    counters = [n_bricks, n_nonfinite, n_out_of_bounds, n_failed, n_slow]. Returns the index
+    of the ray that found no room for a new brick (the caller grows the arrays and calls
+    again: marking is idempotent), or n.
+    """
+    rf = 1.0 / res
+    n = pts.shape[0]
+    pool_cap = bcodes.shape[0]
+    nb = counters[0]
+    glx = glo[0]
+    gly = glo[1]
+    glz = glo[2]
+    for i in range(i0, n):
+        px = np.float32(pts[i, 0])
+        py = np.float32(pts[i, 1])
+        pz = np.float32(pts[i, 2])
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            counters[1] += 1
+            continue
+        ddx = np.float32(px - ox)
+        ddy = np.float32(py - oy)
+        ddz = np.float32(pz - oz)
+        nrm = math.sqrt(np.float64(np.float32(np.float32(ddx * ddx + ddy * ddy) + ddz * ddz)))
+        hit = True
+        ex = px
+        ey = py
+        ez = pz
+        if max_range >= 0.0 and not (nrm <= max_range):
+            hit = False
+            if nrm > 0:
+                fl = np.float32(nrm)
+                ndx = np.float32(ddx / fl)
+                ndy = np.float32(ddy / fl)
+                ndz = np.float32(ddz / fl)
+            else:
+                ndx = ddx
+                ndy = ddy
+                ndz = ddz
+            mr = np.float32(max_range)
+            ex = np.float32(ox + np.float32(ndx * mr))
+            ey = np.float32(oy + np.float32(ndy * mr))
+            ez = np.float32(oz + np.float32(ndz * mr))
+        ex_k = _key_checked(ex, rf)
+        ey_k = _key_checked(ey, rf)
+        ez_k = _key_checked(ez, rf)
+        if not (ex_k >= glo[0] + 2 and ex_k <= ghi[0] - 2 and ey_k >= glo[1] + 2
+                and ey_k <= ghi[1] - 2 and ez_k >= glo[2] + 2 and ez_k <= ghi[2] - 2):
+            slow[counters[4]] = i
+            counters[4] += 1
+            continue
+        if not (ok0[0] == ex_k and ok0[1] == ey_k and ok0[2] == ez_k):
+            if hit:
+                rdx = ddx
+                rdy = ddy
+                rdz = ddz
+                length = np.float32(nrm)
+            else:
+                rdx = np.float32(ex - ox)
+                rdy = np.float32(ey - oy)
+                rdz = np.float32(ez - oz)
+                nsq = np.float32(np.float32(rdx * rdx + rdy * rdy) + rdz * rdz)
+                length = np.float32(math.sqrt(np.float64(nsq)))
+            kx = ok0[0]
+            ky = ok0[1]
+            kz = ok0[2]
+            sx, tx, dtx = _axis_setup(np.float32(rdx / length), kx, ox, res)
+            sy, ty, dty = _axis_setup(np.float32(rdy / length), ky, oy, res)
+            sz, tz, dtz = _axis_setup(np.float32(rdz / length), kz, oz, res)
+            lend = np.float64(length)
+            rem = abs(ex_k - kx) + abs(ey_k - ky) + abs(ez_k - kz)
+            lim = DBL_MAX  # the first step is taken whatever its tMax
+            # keys relative to the grid corner (a multiple of 8: brick-local bits unchanged)
+            kx -= glx
+            ky -= gly
+            kz -= glz
+            ex_r = ex_k - glx
+            ey_r = ey_k - gly
+            ez_r = ez_k - glz
+            while True:
+                # mark the current cell (bit 0 = free; an occupied bit 1 is kept), then step
+                if tx < ty:
+                    if tx < tz:
+                        if tx > lim:
+                            break
+                        bi = (kx >> 3) + (ky >> 3) * gdx + (kz >> 3) * gdxy
+                        b = gdir[bi]
+                        if b < 0:
+                            if nb >= pool_cap:
+                                counters[0] = nb
+                                return i
+                            b = nb
+                            bcodes[nb] = morton((kx + glx) >> 3, (ky + gly) >> 3,
+                                                (kz + glz) >> 3)
+                            gdir[bi] = b
+                            nb += 1
+                        pool[(b << 9) + (kx & 7) + ((ky & 7) << 3) + ((kz & 7) << 6)] |= 1
+                        kx += sx
+                        tx += dtx
+                    else:
+                        if tz > lim:
+                            break
+                        bi = (kx >> 3) + (ky >> 3) * gdx + (kz >> 3) * gdxy
+                        b = gdir[bi]
+                        if b < 0:
+                            if nb >= pool_cap:
+                                counters[0] = nb
+                                return i
+                            b = nb
+                            bcodes[nb] = morton((kx + glx) >> 3, (ky + gly) >> 3,
+                                                (kz + glz) >> 3)
+                            gdir[bi] = b
+                            nb += 1
+                        pool[(b << 9) + (kx & 7) + ((ky & 7) << 3) + ((kz & 7) << 6)] |= 1
+                        kz += sz
+                        tz += dtz
+                else:
+                    if ty < tz:
+                        if ty > lim:
+                            break
+                        bi = (kx >> 3) + (ky >> 3) * gdx + (kz >> 3) * gdxy
+                        b = gdir[bi]
+                        if b < 0:
+                            if nb >= pool_cap:
+                                counters[0] = nb
+                                return i
+                            b = nb
+                            bcodes[nb] = morton((kx + glx) >> 3, (ky + gly) >> 3,
+                                                (kz + glz) >> 3)
+                            gdir[bi] = b
+                            nb += 1
+                        pool[(b << 9) + (kx & 7) + ((ky & 7) << 3) + ((kz & 7) << 6)] |= 1
+                        ky += sy
+                        ty += dty
+                    else:
+                        if tz > lim:
+                            break
+                        bi = (kx >> 3) + (ky >> 3) * gdx + (kz >> 3) * gdxy
+                        b = gdir[bi]
+                        if b < 0:
+                            if nb >= pool_cap:
+                                counters[0] = nb
+                                return i
+                            b = nb
+                            bcodes[nb] = morton((kx + glx) >> 3, (ky + gly) >> 3,
+                                                (kz + glz) >> 3)
+                            gdir[bi] = b
+                            nb += 1
+                        pool[(b << 9) + (kx & 7) + ((ky & 7) << 3) + ((kz & 7) << 6)] |= 1
+                        kz += sz
+                        tz += dtz
+                lim = lend
+                rem -= 1
+                if rem == 0 and kx == ex_r and ky == ey_r and kz == ez_r:
+                    break
+        if hit:
+            bi = ((ex_k - glx) >> 3) + ((ey_k - gly) >> 3) * gdx + ((ez_k - glz) >> 3) * gdxy
+            b = gdir[bi]
+            if b < 0:
+                if nb >= pool_cap:
+                    counters[0] = nb
+                    return i
+                b = nb
+                bcodes[nb] = morton(ex_k >> 3, ey_k >> 3, ez_k >> 3)
+                gdir[bi] = b
+                nb += 1
+            pool[(b << 9) + (ex_k & 7) + ((ey_k & 7) << 3) + ((ez_k & 7) << 6)] |= 2
+    counters[0] = nb
+    return n
+
+
+# direction buckets of sort_rays: per cube face, _DIR_BINS x 4 _DIR_BINS cells
+_DIR_BINS = 16
+
+
+@njit(cache=True, nogil=True)
+def sort_rays(points, origin):
+    """The points reordered by the direction of their ray from ``origin`` (a cube map).
+
+    The DDA's step pattern depends on the direction; marking alike rays one after the other
+    lets the branch predictor and the caches follow (the 0.1 m corridor marks about 1.6x
+    faster than unsorted, and 5-10% faster than sorted by endpoint Morton code). The key is
+    the cube face of the dominant axis, then the two other components over it in 16 x 64
+    bins, the second running back and forth (a snake, so that neighbouring buckets stay
+    alike). The key sets are a union over the rays, so any order gives the same result. One
+    counting-sort pass.
     """
     n = points.shape[0]
     out = np.empty_like(points)
-    if n == 0:
-        return out
-    rf = 1.0 / res
-    keys = np.empty((n, 3), np.int64)
-    lo = np.full(3, 65536, np.int64)
+    nbu = _DIR_BINS
+    nbv = 4 * _DIR_BINS
+    n_buckets = 6 * nbu * nbv
+    ox = np.float64(np.float32(origin[0]))
+    oy = np.float64(np.float32(origin[1]))
+    oz = np.float64(np.float32(origin[2]))
+    key = np.zeros(n, np.int64)
     for i in range(n):
-        for a in range(3):
-            kk = _key_checked(points[i, a], rf)
-            keys[i, a] = kk
-            if kk >= 0 and kk < lo[a]:
-                lo[a] = kk
-    codes = np.empty(n, np.uint64)
-    hi = np.uint64(0)
+        dx = np.float64(points[i, 0]) - ox
+        dy = np.float64(points[i, 1]) - oy
+        dz = np.float64(points[i, 2]) - oz
+        ax = abs(dx)
+        ay = abs(dy)
+        az = abs(dz)
+        # dominant axis by selects, not branches (random directions would mispredict them)
+        xdom = (ax >= ay) & (ax >= az)
+        ydom = (not xdom) & (ay >= az)
+        xy = xdom | ydom
+        dom = ax if xdom else (ay if ydom else az)
+        u = dy if xdom else dx
+        v = dz if xy else dy
+        dsel = dx if xdom else (dy if ydom else dz)
+        face = (0 if xdom else (2 if ydom else 4)) + (1 if dsel > 0 else 0)
+        if not (dom > 0 and dom < 1e300):  # the origin itself, NaN or inf: any bucket
+            continue
+        ub = min(np.int64((u / dom + 1.0) * (0.5 * nbu)), nbu - 1)
+        vb = min(np.int64((v / dom + 1.0) * (0.5 * nbv)), nbv - 1)
+        if ub & 1:
+            vb = nbv - 1 - vb
+        key[i] = (face * nbu + max(ub, 0)) * nbv + max(vb, 0)
+    start = np.zeros(n_buckets + 1, np.int64)
     for i in range(n):
-        c = np.uint64(0)
-        if keys[i, 0] >= 0 and keys[i, 1] >= 0 and keys[i, 2] >= 0:
-            c = morton(keys[i, 0] - lo[0], keys[i, 1] - lo[1], keys[i, 2] - lo[2])
-        codes[i] = c
-        if c > hi:
-            hi = c
-    shift = np.uint64(0)
-    while (hi >> shift) >= np.uint64(1 << 32):
-        shift += np.uint64(1)
-    # LSD radix sort of the 32-bit coarsened codes: two stable passes of 16 bits
-    order = np.arange(n)
-    tmp = np.empty(n, np.int64)
-    for p in range(2):
-        sh = shift + np.uint64(16 * p)
-        start = np.zeros(65537, np.int64)
-        for i in range(n):
-            start[np.int64((codes[i] >> sh) & np.uint64(0xFFFF)) + 1] += 1
-        for b in range(65536):
-            start[b + 1] += start[b]
-        for t in range(n):
-            i = order[t]
-            b = np.int64((codes[i] >> sh) & np.uint64(0xFFFF))
-            tmp[start[b]] = i
-            start[b] += 1
-        order, tmp = tmp, order
-    for j in range(n):
-        i = order[j]
+        start[key[i] + 1] += 1
+    for b in range(n_buckets):
+        start[b + 1] += start[b]
+    for i in range(n):
+        j = start[key[i]]
+        start[key[i]] = j + 1
         out[j, 0] = points[i, 0]
         out[j, 1] = points[i, 1]
         out[j, 2] = points[i, 2]
@@ -523,19 +712,269 @@ def scan_key_sets(points, origin, res, max_range, discretize):
                 pts[i, a] = np.float32(_key_to_coord(ks[i, a], res))
         n = pts.shape[0]
 
-    tab_keys, tab_vals, pool, bcodes, nb, counters2 = scan_marks(pts, origin, res, max_range)
+    tab_keys, tab_vals, pool, bcodes, nb, counters2, _grid = scan_marks(
+        pts, origin, res, max_range, np.zeros(0, np.uint8))
     codes, is_hit = emit_marks(pool, bcodes, nb)
     return (codes, is_hit, counters[1] + counters2[1], counters[2] + counters2[2],
             counters[3] + counters2[3])
 
 
+@njit(cache=True)
+def _mark_rays_dense(pts, ox, oy, oz, ok0, res, max_range, grid, glo, ghi, row, slab, counters,
+                     slow, hits):
+    """Mark the rays that lie in a dense cell grid (fast path); list the others in ``slow``.
+
+    ``grid`` holds one byte per cell of the key box [glo, glo + 8 * dims) (x fastest, ``row``
+    and ``slab`` cells per y and z step): 1 for a free cell, written by plain stores (a step
+    moves the cell address by a constant), then 2 for a hit cell, written after all rays (the
+    occupied state wins). The rays and the walk are those of :func:`_mark_rays_grid` (same
+    exact computeRayKeys replay), except that the end cell test compares addresses at every
+    step: they are unique inside the grid. ``hits`` is scratch for the hit cells' addresses.
+    """
+    rf = 1.0 / res
+    n = pts.shape[0]
+    n_hits = 0
+    glx = glo[0]
+    gly = glo[1]
+    glz = glo[2]
+    for i in range(n):
+        px = np.float32(pts[i, 0])
+        py = np.float32(pts[i, 1])
+        pz = np.float32(pts[i, 2])
+        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+            counters[1] += 1
+            continue
+        ddx = np.float32(px - ox)
+        ddy = np.float32(py - oy)
+        ddz = np.float32(pz - oz)
+        nrm = math.sqrt(np.float64(np.float32(np.float32(ddx * ddx + ddy * ddy) + ddz * ddz)))
+        hit = True
+        ex = px
+        ey = py
+        ez = pz
+        if max_range >= 0.0 and not (nrm <= max_range):
+            hit = False
+            if nrm > 0:
+                fl = np.float32(nrm)
+                ndx = np.float32(ddx / fl)
+                ndy = np.float32(ddy / fl)
+                ndz = np.float32(ddz / fl)
+            else:
+                ndx = ddx
+                ndy = ddy
+                ndz = ddz
+            mr = np.float32(max_range)
+            ex = np.float32(ox + np.float32(ndx * mr))
+            ey = np.float32(oy + np.float32(ndy * mr))
+            ez = np.float32(oz + np.float32(ndz * mr))
+        ex_k = _key_checked(ex, rf)
+        ey_k = _key_checked(ey, rf)
+        ez_k = _key_checked(ez, rf)
+        if not (ex_k >= glx + 2 and ex_k <= ghi[0] - 2 and ey_k >= gly + 2
+                and ey_k <= ghi[1] - 2 and ez_k >= glz + 2 and ez_k <= ghi[2] - 2):
+            slow[counters[4]] = i
+            counters[4] += 1
+            continue
+        eaddr = (ex_k - glx) + (ey_k - gly) * row + (ez_k - glz) * slab
+        if not (ok0[0] == ex_k and ok0[1] == ey_k and ok0[2] == ez_k):
+            if hit:
+                rdx = ddx
+                rdy = ddy
+                rdz = ddz
+                length = np.float32(nrm)
+            else:
+                rdx = np.float32(ex - ox)
+                rdy = np.float32(ey - oy)
+                rdz = np.float32(ez - oz)
+                nsq = np.float32(np.float32(rdx * rdx + rdy * rdy) + rdz * rdz)
+                length = np.float32(math.sqrt(np.float64(nsq)))
+            kx = ok0[0]
+            ky = ok0[1]
+            kz = ok0[2]
+            sx, tx, dtx = _axis_setup(np.float32(rdx / length), kx, ox, res)
+            sy, ty, dty = _axis_setup(np.float32(rdy / length), ky, oy, res)
+            sz, tz, dtz = _axis_setup(np.float32(rdz / length), kz, oz, res)
+            lend = np.float64(length)
+            lim = DBL_MAX  # the first step is taken whatever its tMax
+            # unsigned addresses (steps wrap modulo 2^64): indexing needs no negative-index fix
+            addr = np.uint64((kx - glx) + (ky - gly) * row + (kz - glz) * slab)
+            ueaddr = np.uint64(eaddr)
+            ix = np.uint64(sx)
+            iy = np.uint64(sy * row)
+            iz = np.uint64(sz * slab)
+            while True:
+                if tx < ty:
+                    if tx < tz:
+                        if tx > lim:
+                            break
+                        grid[addr] = 1
+                        addr += ix
+                        tx += dtx
+                    else:
+                        if tz > lim:
+                            break
+                        grid[addr] = 1
+                        addr += iz
+                        tz += dtz
+                else:
+                    if ty < tz:
+                        if ty > lim:
+                            break
+                        grid[addr] = 1
+                        addr += iy
+                        ty += dty
+                    else:
+                        if tz > lim:
+                            break
+                        grid[addr] = 1
+                        addr += iz
+                        tz += dtz
+                lim = lend
+                if addr == ueaddr:
+                    break
+        if hit:
+            hits[n_hits] = eaddr
+            n_hits += 1
+    for j in range(n_hits):
+        grid[hits[j]] = 2
+
+
+@njit(cache=True)
+def _dense_to_bricks(grid, glo, dims, tab_keys, tab_vals, pool, bcodes, nb, cap, pool_cap):
+    """Move the marks of a dense grid into bricks (and clear the grid for its next use).
+
+    Returns (tab_keys, tab_vals, pool, bcodes, nb, cap, pool_cap), grown as needed.
+    """
+    row = 8 * dims[0]
+    slab = row * 8 * dims[1]
+    # 8 cells of a brick row are one aligned uint64 (glo and row are multiples of 8)
+    g64 = grid.view(np.uint64)
+    row64 = row >> 3
+    slab64 = slab >> 3
+    n_bricks = dims[0] * dims[1] * dims[2]
+    used = np.zeros(n_bricks, np.bool_)
+    n_used = 0
+    for bz in range(dims[2]):
+        for by in range(dims[1]):
+            for bx in range(dims[0]):
+                w0 = bx + 8 * by * row64 + 8 * bz * slab64
+                anyb = np.uint64(0)
+                for z in range(8):
+                    for y in range(8):
+                        anyb |= g64[w0 + y * row64 + z * slab64]
+                if anyb != 0:
+                    used[bx + dims[0] * (by + dims[1] * bz)] = True
+                    n_used += 1
+    need = nb + n_used
+    if need > pool_cap:
+        while need > pool_cap:
+            pool_cap *= 2
+        npool = np.zeros(pool_cap * 512, np.uint8)
+        npool[: nb * 512] = pool[: nb * 512]
+        pool = npool
+        nbc = np.empty(pool_cap, np.uint64)
+        nbc[:nb] = bcodes[:nb]
+        bcodes = nbc
+    if (need + 1) * 2 > cap:
+        while (need + 1) * 2 > cap:
+            cap *= 4
+        mask = cap - 1
+        tab_keys = np.full(cap, _EMPTY, np.uint64)
+        tab_vals = np.empty(cap, np.int64)
+        for j in range(nb):
+            hh = _hash(bcodes[j], mask)
+            while tab_keys[hh] != _EMPTY:
+                hh = (hh + 1) & mask
+            tab_keys[hh] = bcodes[j]
+            tab_vals[hh] = j
+    mask = cap - 1
+    p64 = pool.view(np.uint64)
+    for bz in range(dims[2]):
+        for by in range(dims[1]):
+            for bx in range(dims[0]):
+                if not used[bx + dims[0] * (by + dims[1] * bz)]:
+                    continue
+                bc = morton((glo[0] >> 3) + bx, (glo[1] >> 3) + by, (glo[2] >> 3) + bz)
+                idx, h = _brick_find(tab_keys, tab_vals, bc, mask)
+                if idx < 0:
+                    idx = nb
+                    bcodes[nb] = bc
+                    tab_keys[h] = bc
+                    tab_vals[h] = idx
+                    nb += 1
+                w0 = bx + 8 * by * row64 + 8 * bz * slab64
+                # brick cell lx + 8 ly + 64 lz: row (ly, lz) is uint64 number idx * 64 + ly + 8 lz
+                for z in range(8):
+                    for y in range(8):
+                        w = w0 + y * row64 + z * slab64
+                        p64[idx * 64 + y + 8 * z] |= g64[w]
+                        g64[w] = 0
+    return tab_keys, tab_vals, pool, bcodes, nb, cap, pool_cap
+
+
+# Scans whose key box has at most this many cells are marked in a dense grid (one byte per
+# cell, reused from scan to scan), larger ones in bricks found through a grid directory.
+_DENSE_MAX_CELLS = 1 << 22
+
+
+# The brick grid directory of the fast path holds at most this many bricks (16 MB of int32);
+# a larger key box is cut around the origin and the rays leaving it take the hashed path.
+_GRID_MAX_BRICKS = 1 << 22
+
+
+@njit(cache=True)
+def _grid_box(pts, ok0, rf, max_range):
+    """(glo, ghi, dims) of the brick grid for the rays ``pts`` from the key ``ok0``.
+
+    The box covers the end keys (cut to ``max_range`` around the origin when it is >= 0) with a
+    margin of 3 cells, starts on a multiple of 8 and stays inside the key space.
+    """
+    lo = ok0.copy()
+    hi = ok0.copy()
+    for j in range(pts.shape[0]):
+        for a in range(3):
+            kk = _key_checked(pts[j, a], rf)
+            if kk >= 0:
+                if kk < lo[a]:
+                    lo[a] = kk
+                if kk > hi[a]:
+                    hi[a] = kk
+    reach = 1 << 20
+    if max_range >= 0.0:
+        reach = np.int64(min(max_range * rf, 1e6)) + 3
+    dims = np.empty(3, np.int64)
+    glo = np.empty(3, np.int64)
+    ghi = np.empty(3, np.int64)
+    for _attempt in range(2):
+        total = 1
+        for a in range(3):
+            l0 = max(lo[a] - 3, ok0[a] - reach, 0)
+            h0 = min(hi[a] + 3, ok0[a] + reach, 65535)
+            glo[a] = (l0 >> 3) << 3
+            dims[a] = ((h0 - glo[a]) >> 3) + 1
+            ghi[a] = min(glo[a] + 8 * dims[a] - 1, 65535)
+            total *= dims[a]
+        if total <= _GRID_MAX_BRICKS:
+            break
+        reach = 4 * 128  # a 128^3-brick box around the origin
+    return glo, ghi, dims
+
+
 @njit(cache=True, nogil=True)
-def scan_marks(pts, origin, res, max_range):
+def scan_marks(pts, origin, res, max_range, grid, path=0):
     """Free/hit marks of the rays ``pts`` from ``origin`` in bricks (no discretisation).
 
-    Returns (tab_keys, tab_vals, pool, bcodes, n_bricks, counters): the brick hash table, the
-    marks (``pool[512 * b + cell]``: bit 0 free, bit 1 hit), the brick Morton codes and
-    counters [n_bricks, n_nonfinite, n_out_of_bounds, n_failed]. Releases the GIL.
+    Returns (tab_keys, tab_vals, pool, bcodes, n_bricks, counters, grid): the brick hash
+    table, the marks (``pool[512 * b + cell]``: bit 0 free, bit 1 hit), the brick Morton codes,
+    counters [n_bricks, n_nonfinite, n_out_of_bounds, n_failed, n_slow] and the dense-grid
+    buffer. Rays inside the key box around the origin are marked by :func:`_mark_rays_dense`
+    (in ``grid``: a zeroed uint8 buffer whose length is a multiple of 8, replaced by a larger
+    one when too small and left zeroed for the next scan) or, for a large box,
+    :func:`_mark_rays_grid`; the others
+    (far from the origin, at the edge of the key space, origin outside the map) by
+    :func:`_mark_rays`. All walk exactly computeRayKeys' cells, so the marks do not depend on
+    the path taken (``path`` 1 / 2 forces the brick grid / the hashed path, for tests).
+    Releases the GIL.
     """
     rf = 1.0 / res
     n = pts.shape[0]
@@ -546,44 +985,125 @@ def scan_marks(pts, origin, res, max_range):
     ok0[0] = _key_checked(ox, rf)
     ok0[1] = _key_checked(oy, rf)
     ok0[2] = _key_checked(oz, rf)
-    counters = np.zeros(4, np.int64)
+    counters = np.zeros(5, np.int64)
     cap = 1 << 12
     tab_keys = np.full(cap, _EMPTY, np.uint64)
     tab_vals = np.empty(cap, np.int64)
     pool_cap = 1024
     pool = np.zeros(pool_cap * 512, np.uint8)
     bcodes = np.empty(pool_cap, np.uint64)
+    slow_pts = pts
+    if ok0[0] >= 0 and ok0[1] >= 0 and ok0[2] >= 0:
+        glo, ghi, dims = _grid_box(pts, ok0, rf, max_range)
+        inside = True
+        for a in range(3):
+            if ok0[a] < glo[a] + 2 or ok0[a] > ghi[a] - 2:
+                inside = False
+        n_cells = 512 * dims[0] * dims[1] * dims[2]
+        if path == 2:
+            inside = False
+        if inside and n_cells <= _DENSE_MAX_CELLS and path == 0:
+            if grid.shape[0] < n_cells:
+                grid = np.zeros(n_cells + n_cells // 4, np.uint8)
+            slow = np.empty(n, np.int64)
+            row = 8 * dims[0]
+            _mark_rays_dense(pts, ox, oy, oz, ok0, res, max_range, grid, glo, ghi, row,
+                             row * 8 * dims[1], counters, slow, np.empty(n, np.int64))
+            tab_keys, tab_vals, pool, bcodes, nb, cap, pool_cap = _dense_to_bricks(
+                grid, glo, dims, tab_keys, tab_vals, pool, bcodes, 0, cap, pool_cap)
+            counters[0] = nb
+            n_slow = counters[4]
+            slow_pts = np.empty((n_slow, 3), pts.dtype)
+            for j in range(n_slow):
+                for a in range(3):
+                    slow_pts[j, a] = pts[slow[j], a]
+        elif inside:
+            gdir = np.full(dims[0] * dims[1] * dims[2], -1, np.int32)
+            slow = np.empty(n, np.int64)
+            i = 0
+            while True:
+                i = _mark_rays_grid(pts, ox, oy, oz, ok0, res, max_range, i, pool, bcodes,
+                                    counters, gdir, glo, ghi, dims[0], dims[0] * dims[1], slow)
+                if i >= n:
+                    break
+                tab_keys, tab_vals, pool, bcodes, cap, pool_cap = _grow_marks(
+                    tab_keys, tab_vals, pool, bcodes, counters[0], cap, pool_cap, False)
+            # the grid's bricks into the hash table (the slow path and unite_marks look there)
+            tab_keys, tab_vals, pool, bcodes, cap, pool_cap = _grow_marks(
+                tab_keys, tab_vals, pool, bcodes, counters[0], cap, pool_cap, True)
+            n_slow = counters[4]
+            slow_pts = np.empty((n_slow, 3), pts.dtype)
+            for j in range(n_slow):
+                for a in range(3):
+                    slow_pts[j, a] = pts[slow[j], a]
     nbr = np.full(pool_cap * 6, -1, np.int64)
+    n2 = slow_pts.shape[0]
     i = 0
-    while True:
-        i = _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i, tab_keys, tab_vals, pool,
+    while n2 > 0:
+        i = _mark_rays(slow_pts, ox, oy, oz, ok0, res, max_range, i, tab_keys, tab_vals, pool,
                        bcodes, nbr, counters)
-        if i >= n:
+        if i >= n2:
             break
         nb = counters[0]
-        if nb >= pool_cap:
-            pool_cap *= 2
-            npool = np.zeros(pool_cap * 512, np.uint8)
-            npool[: nb * 512] = pool[: nb * 512]
-            pool = npool
-            nbc = np.empty(pool_cap, np.uint64)
-            nbc[:nb] = bcodes[:nb]
-            bcodes = nbc
+        tab_keys, tab_vals, pool, bcodes, cap, pool_cap = _grow_marks(
+            tab_keys, tab_vals, pool, bcodes, nb, cap, pool_cap, False)
+        if nbr.shape[0] < pool_cap * 6:
             nnbr = np.full(pool_cap * 6, -1, np.int64)
             nnbr[: nb * 6] = nbr[: nb * 6]
             nbr = nnbr
-        if (nb + 1) * 2 > cap:
+    return tab_keys, tab_vals, pool, bcodes, counters[0], counters, grid
+
+
+@njit(cache=True)
+def _grow_marks(tab_keys, tab_vals, pool, bcodes, nb, cap, pool_cap, rehash):
+    """Room for more bricks: a larger pool when full, a larger hash table when half full (or
+    a rebuilt one when ``rehash``: the grid path fills ``bcodes`` only)."""
+    if nb >= pool_cap:
+        pool_cap *= 2
+        npool = np.zeros(pool_cap * 512, np.uint8)
+        npool[: nb * 512] = pool[: nb * 512]
+        pool = npool
+        nbc = np.empty(pool_cap, np.uint64)
+        nbc[:nb] = bcodes[:nb]
+        bcodes = nbc
+    if (nb + 1) * 2 > cap or rehash:
+        while (nb + 1) * 2 > cap:
             cap *= 4
-            mask = cap - 1
-            tab_keys = np.full(cap, _EMPTY, np.uint64)
-            tab_vals = np.empty(cap, np.int64)
-            for j in range(nb):
-                hh = _hash(bcodes[j], mask)
-                while tab_keys[hh] != _EMPTY:
-                    hh = (hh + 1) & mask
-                tab_keys[hh] = bcodes[j]
-                tab_vals[hh] = j
-    return tab_keys, tab_vals, pool, bcodes, counters[0], counters
+        mask = cap - 1
+        tab_keys = np.full(cap, _EMPTY, np.uint64)
+        tab_vals = np.empty(cap, np.int64)
+        for j in range(nb):
+            hh = _hash(bcodes[j], mask)
+            while tab_keys[hh] != _EMPTY:
+                hh = (hh + 1) & mask
+            tab_keys[hh] = bcodes[j]
+            tab_vals[hh] = j
+    return tab_keys, tab_vals, pool, bcodes, cap, pool_cap
+
+
+@njit(cache=True, nogil=True)
+def sorted_scan_marks(points, origin, res, max_range, part, n_parts, block, grid, path=0):
+    """:func:`scan_marks` of one share of a scan's rays, sorted by direction first.
+
+    The share is every ``n_parts``-th block of ``block`` rays starting at block ``part`` (rays
+    of neighbouring blocks are alike, so the shares cost the same). Releases the GIL: the
+    threads of ``OcTree.insert_point_cloud`` sort and mark their shares at the same time.
+    """
+    n = points.shape[0]
+    m = 0
+    for s in range(part * block, n, n_parts * block):
+        m += min(block, n - s)
+    sub = np.empty((m, 3), points.dtype)
+    j = 0
+    for s in range(part * block, n, n_parts * block):
+        for t in range(s, min(s + block, n)):
+            sub[j, 0] = points[t, 0]
+            sub[j, 1] = points[t, 1]
+            sub[j, 2] = points[t, 2]
+            j += 1
+    if m >= 4096:
+        sub = sort_rays(sub, origin)
+    return scan_marks(sub, origin, res, max_range, grid, path)
 
 
 @njit(cache=True, nogil=True)
@@ -671,28 +1191,25 @@ def emit_marks(pool, bcodes, nb):
 # --------------------------------------------------------------------------- tree updates
 
 
+@intrinsic
+def _ctlz64(typingctx, x):
+    """Count of leading zero bits of a uint64 (LLVM's ctlz: one instruction, no branches)."""
+    if not isinstance(x, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        i64 = ir.IntType(64)
+        fnty = ir.FunctionType(i64, [i64, ir.IntType(1)])
+        fn = builder.module.declare_intrinsic("llvm.ctlz", [i64], fnty)
+        return builder.call(fn, [args[0], ir.Constant(ir.IntType(1), 0)])
+
+    return types.int64(types.uint64), codegen
+
+
 @njit(cache=True, inline="always")
 def _msb(x):
-    """Index of the highest set bit of a non-zero uint64 (binary search, 6 steps)."""
-    b = 0
-    if x >> np.uint64(32):
-        x = x >> np.uint64(32)
-        b += 32
-    if x >> np.uint64(16):
-        x = x >> np.uint64(16)
-        b += 16
-    if x >> np.uint64(8):
-        x = x >> np.uint64(8)
-        b += 8
-    if x >> np.uint64(4):
-        x = x >> np.uint64(4)
-        b += 4
-    if x >> np.uint64(2):
-        x = x >> np.uint64(2)
-        b += 2
-    if x >> np.uint64(1):
-        b += 1
-    return b
+    """Index of the highest set bit of a non-zero uint64."""
+    return 63 - _ctlz64(np.uint64(x))
 
 
 @njit(cache=True)
@@ -760,7 +1277,12 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
     way up pruneNode / max-of-children, done here when a node leaves the DFS path (its subtree is
     final for this batch by then). Returns (number of keys that changed something, index of the
     first key not applied for lack of child blocks or -1).
+
+    A new subtree whose whole key cube gets the same update (8^L consecutive codes, aligned)
+    ends as one leaf with the value clamp(0 + u): its 8^L equal new leaves are pruned level by
+    level. Such a cube is written as that leaf directly (not in lazy mode, which never prunes).
     """
+    n = codes.shape[0]
     stk = np.zeros(17, np.int64)
     dirty = np.zeros(17, np.bool_)
     stk_len = 1
@@ -768,7 +1290,14 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
     n_applied = 0
     stopped = -1
     cap_blocks = free_blocks.shape[0]
-    for i in range(codes.shape[0]):
+    # run[i]: number of consecutive codes from i (code, code + 1, ...) with the update of i
+    run = np.ones(n if not lazy else 0, np.int64)
+    if not lazy:
+        for j in range(n - 2, -1, -1):
+            if codes[j + 1] == codes[j] + np.uint64(1) and upd[j + 1] == upd[j]:
+                run[j] = run[j + 1] + 1
+    i = 0
+    while i < n:
         code = codes[i]
         u = upd[i]
         if i > 0:
@@ -803,6 +1332,17 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
         if d == 16 or is_leaf:
             lv = val[nd]
             if (u >= 0 and lv >= cmax) or (u <= 0 and lv <= cmin):
+                # the next keys in the same (pruned) leaf whose update also stops at its clamp
+                # change nothing either: step over them without a search each
+                i += 1
+                if d < 16:
+                    sh = np.uint64(3 * (16 - d))
+                    top = code >> sh
+                    while i < n and (codes[i] >> sh) == top:
+                        u2 = upd[i]
+                        if not ((u2 >= 0 and lv >= cmax) or (u2 <= 0 and lv <= cmin)):
+                            break
+                        i += 1
                 continue
         if state[0] + (cap_blocks - state[1]) < 16 - d:
             # out of child blocks: stop before touching key i (the caller grows the arrays and
@@ -810,7 +1350,17 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
             stopped = i
             break
         created = d == 0 and root_new and first[0] < 0
-        while d < 16:
+        # depth of the node to update: 16, or the top of a full new cube with one update
+        dt = 16
+        if not lazy and d <= 14 and (first[nd] >= 0 or created):
+            lev = 0
+            while lev < 15 - d:
+                size = np.int64(1) << (3 * (lev + 1))
+                if (code & np.uint64(size - 1)) != 0 or run[i] < size:
+                    break
+                lev += 1
+            dt = 16 - lev
+        while d < dt:
             pos = np.int64((code >> np.uint64(3 * (15 - d))) & np.uint64(7))
             f = first[nd]
             if f < 0:
@@ -838,19 +1388,21 @@ def apply_updates(val, first, cmask, free_blocks, state, codes, upd, cmin, cmax,
             nd = f + pos
             d += 1
             stk[d] = nd
-        stk_len = 17
+        stk_len = dt + 1
         lv = np.float32(val[nd] + u)
         if lv < cmin:
             lv = cmin
         elif lv > cmax:
             lv = cmax
         val[nd] = lv
-        n_applied += 1
+        n_keys = np.int64(1) << (3 * (16 - dt))
+        n_applied += n_keys
         root_new = False
-        for dd in range(15, -1, -1):
+        for dd in range(dt - 1, -1, -1):
             if dirty[dd]:
                 break
             dirty[dd] = True
+        i += n_keys
     for d in range(stk_len - 1, -1, -1):
         if dirty[d]:
             if not lazy:

@@ -7,6 +7,7 @@ counts and files are bit-identical to liboctomap 1.9.7 (see docs/octree.md for t
 from __future__ import annotations
 
 import math
+import threading
 import warnings
 from dataclasses import dataclass
 
@@ -119,17 +120,23 @@ def _k():
     return _kernels
 
 
-# Rays of one scan are first sorted by endpoint (kernels.sort_rays, for cache locality; from
-# _SORT_MIN_POINTS points on), then marked on several threads (numba's thread count,
-# NUMBA_NUM_THREADS) in interleaved blocks of _PARALLEL_BLOCK rays (neighbouring rays are alike
-# in length, so contiguous halves would be unbalanced), each thread into its own marks, which
-# are then OR-ed brick by brick. Key sets are a union over the rays, so neither the order nor
-# the split changes them: the maps stay bit-identical. Below _PARALLEL_MIN_CHUNK points per
-# thread the threads cost more than they save.
+# Rays of one scan are marked on several threads (numba's thread count, NUMBA_NUM_THREADS):
+# each takes every n-th block of _PARALLEL_BLOCK rays (neighbouring rays are alike in length,
+# so contiguous halves would be unbalanced), sorts its share by ray direction
+# (kernels.sort_rays, from 4096 rays on: alike rays in a row mark faster) and marks it into
+# its own bricks, which are then OR-ed brick by brick. Key sets are a union over the rays, so
+# neither the order nor the split changes them: the maps stay bit-identical. Below
+# _PARALLEL_MIN_CHUNK points per thread the threads cost more than they save.
 _PARALLEL_MIN_CHUNK = 16384
-_SORT_MIN_POINTS = 4096
 _PARALLEL_BLOCK = 4096
 _EXECUTOR = None
+# dense marking grids (kernels.scan_marks), kept zeroed between scans so that a scan does not
+# pay for fresh pages: a pool of buffers, one per concurrent share
+_GRID_POOL: list = []
+_GRID_LOCK = threading.Lock()
+# marking path: 0 = automatic (dense grid, brick grid or hashed bricks by the scan's extent);
+# tests set 1 (brick grid) or 2 (hashed bricks only) to check every path against liboctomap
+_MARK_PATH = 0
 
 
 def _executor(n_workers: int):
@@ -143,26 +150,34 @@ def _executor(n_workers: int):
 
 def _scan_key_sets(pts: np.ndarray, origin: np.ndarray, res: float, max_range: float,
                    discretize: bool):
-    """kernels.scan_key_sets of a scan: rays sorted by endpoint, marked on numba's threads."""
+    """kernels.scan_key_sets of a scan: shares of the rays sorted and marked on numba's threads."""
     k = _k()
     from numba import get_num_threads
 
     n = pts.shape[0]
     if discretize:
         return k.scan_key_sets(pts, origin, res, max_range, discretize)
-    if n >= _SORT_MIN_POINTS:
-        pts = k.sort_rays(pts, res)  # locality only: the key sets do not depend on the ray order
-    n_chunks = min(get_num_threads(), n // _PARALLEL_MIN_CHUNK)
-    if n_chunks < 2:
-        return k.scan_key_sets(pts, origin, res, max_range, False)
-    block_of = np.arange(n) // _PARALLEL_BLOCK % n_chunks
-    chunks = [pts[block_of == c] for c in range(n_chunks)]
-    ex = _executor(n_chunks - 1)
-    # the calling thread marks the last chunk (the kernels release the GIL)
-    futures = [ex.submit(k.scan_marks, c, origin, res, max_range) for c in chunks[:-1]]
-    parts = [k.scan_marks(chunks[-1], origin, res, max_range)]
-    parts = [f.result() for f in futures] + parts
-    tab_keys, tab_vals, pool, bcodes, nb, _ = parts[0]
+    n_chunks = max(1, min(get_num_threads(), n // _PARALLEL_MIN_CHUNK))
+    block = _PARALLEL_BLOCK if n_chunks > 1 else max(n, 1)
+    empty = np.zeros(0, np.uint8)
+    with _GRID_LOCK:
+        grids = [_GRID_POOL.pop() if _GRID_POOL else empty for _ in range(n_chunks)]
+    parts = []
+    if n_chunks > 1:
+        ex = _executor(n_chunks - 1)
+        futures = [ex.submit(k.sorted_scan_marks, pts, origin, res, max_range, c, n_chunks,
+                             block, grids[c], _MARK_PATH) for c in range(n_chunks - 1)]
+    # the calling thread marks the last share (the kernels release the GIL)
+    last = k.sorted_scan_marks(pts, origin, res, max_range, n_chunks - 1, n_chunks, block,
+                               grids[-1], _MARK_PATH)
+    if n_chunks > 1:
+        parts = [f.result() for f in futures]
+    parts.append(last)
+    with _GRID_LOCK:
+        # the kernels leave the grids zeroed; keep at most one per thread
+        _GRID_POOL.extend(p[6] for p in parts if p[6].shape[0])
+        del _GRID_POOL[get_num_threads():]
+    tab_keys, tab_vals, pool, bcodes, nb = parts[0][:5]
     for p in parts[1:]:
         tab_keys, tab_vals, pool, bcodes, nb = k.unite_marks(tab_keys, tab_vals, pool, bcodes,
                                                              nb, p[2], p[3], p[4])

@@ -6,7 +6,9 @@ liboctomap's pre-order, so byte equality means the same nodes, leaves and values
 from __future__ import annotations
 
 import bz2
+import contextlib
 import subprocess
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -428,3 +430,129 @@ def test_random_scans_equal_liboctomap(seed, res, max_range, n_scans):
                              maxrange=max_range)
         tree.insert_point_cloud(pts, origin, max_range=max_range)
     assert tree.to_bytes_ot() == ref.write()
+
+
+# --------------------------------------------------------------------------- marking paths
+
+
+MARK_PATHS = pytest.mark.parametrize("mark_path", [0, 1, 2],
+                                     ids=["auto", "brick-grid", "hashed"])
+
+
+@contextlib.contextmanager
+def _forced_path(path: int):
+    """Force one ray-marking path of insert_point_cloud (0 = automatic: the dense grid here)."""
+    import mapping.octree as octree_module
+
+    old = octree_module._MARK_PATH
+    octree_module._MARK_PATH = path
+    try:
+        yield
+    finally:
+        octree_module._MARK_PATH = old
+
+
+def _tie_heavy_cloud(rng, res: float, origin: np.ndarray, n: int) -> np.ndarray:
+    """Endpoints that make computeRayKeys break ties: axis-aligned and diagonal rays, points on
+    cell corners and centres, lengths that are whole multiples of the resolution."""
+    parts = []
+    lengths = np.where(rng.random(n) < 0.5, rng.integers(1, 30, n) * res,
+                       rng.uniform(0.01, 4.0, n))
+    axis = np.eye(3)[rng.integers(0, 3, n)] * rng.choice([-1.0, 1.0], (n, 1))
+    parts.append(origin + axis * lengths[:, None])
+    diag = rng.choice([-1.0, 0.0, 1.0], (n, 3))
+    diag[np.abs(diag).sum(axis=1) == 0, 0] = 1.0
+    parts.append(origin + diag * lengths[:, None])
+    corners = rng.integers(-25, 25, (n, 3)) * res
+    parts.append(corners + np.where(rng.random((n, 1)) < 0.5, 0.0, 0.5 * res))
+    parts.append(origin + rng.normal(scale=1.5, size=(n, 3)))
+    return np.concatenate(parts).astype(np.float32)
+
+
+@MARK_PATHS
+@settings(max_examples=12, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.sampled_from([0.1, 0.05, 1 / 3, 0.25]),
+       st.sampled_from([-1.0, 1.0, 2.5]))
+def test_every_marking_path_equals_liboctomap_on_tie_heavy_rays(mark_path, seed, res,
+                                                               max_range):
+    """Ties in tMax (axis-aligned, diagonal rays; origins on cell corners or centres) through
+    the dense grid, the brick grid and the hashed bricks; a second scan updates the first."""
+    rng = np.random.default_rng(seed)
+    ref = octomap.OcTree(res)
+    tree = OcTree(res)
+    for kind in range(2):
+        k0 = rng.integers(-3, 3, 3) * res
+        origin = [k0, k0 + 0.5 * res, rng.uniform(-0.5, 0.5, 3)][(seed + kind) % 3]
+        origin = origin.astype(np.float32).astype(np.float64)
+        pts = _tie_heavy_cloud(rng, res, origin, 150)
+        ref.insertPointCloud(pts.astype(np.float64), origin, maxrange=max_range)
+        with _forced_path(mark_path):
+            tree.insert_point_cloud(pts, origin, max_range=max_range)
+    assert tree.to_bytes_ot() == ref.write()
+
+
+@MARK_PATHS
+def test_rays_at_the_edge_of_the_key_space_equal_liboctomap(mark_path):
+    """Rays ending next to the last keys (the DDA may step one cell past its end cell there)
+    and endpoints outside the map, at 1 cm (the map ends at +-327.68 m)."""
+    res = 0.01
+    rng = np.random.default_rng(5)
+    ref = octomap.OcTree(res)
+    tree = OcTree(res)
+    for origin in ([327.61, 0.003, -0.02], [-327.655, 0.0, 0.0], [0.0, 327.6, 327.6]):
+        o = np.array(origin, np.float32).astype(np.float64)
+        pts = o + rng.uniform(-0.09, 0.09, (400, 3))
+        pts[::7] = o + rng.choice([-1.0, 1.0], (len(pts[::7]), 3)) * 0.0699
+        pts = pts.astype(np.float32)
+        inside = tree.coord_to_key_checked(pts)[1]
+        assert 0 < (~inside).sum() < len(pts)
+        ref.insertPointCloud(pts.astype(np.float64), o)
+        with warnings.catch_warnings(), _forced_path(mark_path):
+            warnings.simplefilter("ignore", RuntimeWarning)
+            stats = tree.insert_point_cloud(pts, o)
+        assert stats.n_out_of_bounds == int((~inside).sum())
+    assert tree.size() == ref.size()
+    assert tree.to_bytes_ot() == ref.write()
+
+
+def test_marking_paths_give_identical_key_sets_on_scan_dat(scan_points):
+    """The three marking paths and several thread splits on the real scan (0.1 m, 10 m)."""
+    from mapping import _kernels as kern
+
+    zero = np.zeros(3, np.float32)
+    results = []
+    for path in (0, 1, 2):
+        for n_parts in (1, 3):
+            parts = [kern.sorted_scan_marks(scan_points, zero, 0.1, 10.0, c, n_parts, 4096,
+                                            np.zeros(0, np.uint8), path)
+                     for c in range(n_parts)]
+            tab_keys, tab_vals, pool, bcodes, nb = parts[0][:5]
+            for p in parts[1:]:
+                tab_keys, tab_vals, pool, bcodes, nb = kern.unite_marks(
+                    tab_keys, tab_vals, pool, bcodes, nb, p[2], p[3], p[4])
+            results.append(kern.emit_marks(pool, bcodes, nb))
+            assert all(not p[6].any() for p in parts)  # dense grids come back zeroed
+    for codes, is_hit in results[1:]:
+        assert np.array_equal(codes, results[0][0]) and np.array_equal(is_hit, results[0][1])
+
+
+@pytest.mark.parametrize("edge", [1, 2, 4])
+def test_new_full_cubes_with_one_update_equal_per_key_updates(edge, rng):
+    """A full aligned cube of new cells with one update ends as a single pruned leaf; partial
+    cubes, mixed updates and cubes under existing nodes must not (updateNode per key)."""
+    res = 0.1
+    base = np.stack(np.meshgrid(*[np.arange(2 * edge)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    keys = (base + 32768 + 8 * edge).astype(np.int64)
+    upd = np.where(rng.random(len(keys)) < 0.1, True, False)
+    upd[: len(keys) // 2] = False  # the first full cubes: one update
+    keep = rng.random(len(keys)) > 0.02  # some cubes miss a cell
+    keep[: len(keys) // 2] = True
+    keys, upd = keys[keep], upd[keep]
+    ref = octomap.OcTree(res)
+    tree = OcTree(res)
+    for rep in range(2):
+        for key, u in zip(keys, upd):
+            ref.updateNode(OcTree(res).key_to_coord(key[None])[0], bool(u))
+        tree.update_node(keys, upd, keys=True)
+        assert tree.size() == ref.size(), rep
+        assert tree.to_bytes_ot() == ref.write()
