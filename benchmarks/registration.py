@@ -11,13 +11,20 @@ correspondence-distance schedule. ``--schedule two-stage`` (default): d_max = d0
 small, 1.0 m wide) until converged, then d_max = 0.2 m until converged -- Open3D and
 small_gicp as two calls, ours as ``anneal="convergence"`` with ``decay = 0.2 / d0`` (exactly
 the same two stages). ``--schedule single``: one stage at d0 for everyone. The room's depth
-noise and label noise share one random stream (perception.simulation.room), so the geometry
-differs slightly between label accuracies: every method runs on every accuracy's clouds.
+noise and label noise have separate random streams (perception.simulation.room), so the
+points are the same for every label accuracy (checked here): the geometry-only methods run
+once per view, size, offset and trial and their result stands in every accuracy's cell;
+Semantic-ICP runs on every accuracy's labels.
 
 Open3D runs with CauchyLoss(1.0) ("open3d-gicp", the reference of the ratio columns) and
 with CauchyLoss(2.0) ("open3d-gicp-c2", the same kernel scale as ours: Open3D applies the
 Cauchy weight to each whitened residual row, ours to the whole correspondence; for a residual
 along the normal these coincide).
+
+Trials of one room share its clouds (the subsample is seeded by the size; at 50k points the
+source is the whole headset cloud and the target most of the map): they vary only the
+initial guess, so a cell holds 4 independent data sets per room seed; ``--seeds`` adds
+independent rooms (depth noise, labels, ground-truth offsets).
 
 Success: t_err < 0.10 m and r_err < 5 deg (the simulated map itself disagrees with the
 ground truth by a few cm, see docs/registration.md). Times are medians, per registration,
@@ -28,6 +35,7 @@ Usage::
 
     python benchmarks/registration.py --quick          # 1k + 10k points, 2 trials
     python benchmarks/registration.py                  # 1k, 10k, 50k points, 3 trials
+    python benchmarks/registration.py --seeds 0,1,2 --trials 2  # three independent rooms
     python benchmarks/registration.py --json run.json  # also save every trial
     python benchmarks/registration.py --from-json run.json  # re-print a saved run's table
     python benchmarks/registration.py --factor-ablation  # batched vs per-correspondence factor
@@ -167,7 +175,10 @@ def _median_time(fn, repeats):
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help="1k and 10k points, 2 trials")
-    parser.add_argument("--trials", type=int, default=None)
+    parser.add_argument("--trials", type=int, default=None,
+                        help="initial guesses per view and room (they share the clouds)")
+    parser.add_argument("--seeds", default="0",
+                        help="comma-separated room seeds: independent noise realisations")
     parser.add_argument("--sizes", default=None, help="comma-separated source sizes")
     parser.add_argument("--accuracies", default="1.0,0.9,0.7,0.5")
     parser.add_argument("--views", default=",".join(VIEWPOINTS))
@@ -189,7 +200,8 @@ def main(argv=None) -> int:
                 [(t["d_se3"], t["t_err_m"], t["r_err_rad"], t["time_s"]) for t in r["trials"]]
                 for r in saved["rows"]}
         print(f"schedule {saved['schedule']}; {saved['trials']} trial(s) x "
-              f"{len(saved['views'])} view(s) per cell")
+              f"{len(saved['views'])} view(s) x {len(saved.get('seeds', [0]))} room seed(s) "
+              "per cell")
         report(defaultdict(list, rows), sorted({k[1] for k in rows}, reverse=True),
                sorted({k[3] for k in rows}), [m for m in METHODS if any(k[0] == m for k in rows)])
         return 0
@@ -198,20 +210,30 @@ def main(argv=None) -> int:
     trials = args.trials or (2 if args.quick else 3)
     accuracies = [float(a) for a in args.accuracies.split(",")]
     views = args.views.split(",")
+    seeds = [int(x) for x in args.seeds.split(",")]
     methods = {m: METHODS[m] for m in args.methods.split(",")}
     load_start = os.getloadavg()
     rows = defaultdict(list)  # (method, acc, offset, size) -> [(d, t_err, r_err, time)]
     warm = False
-    for acc in accuracies:
-        cfg = RoomConfig(label_accuracy=acc, robot_label_accuracy=acc)
-        room = build_room(cfg)
-        robot_map = robot_semantic_map(room, cfg)
+    geometric = [m for m in methods if m != "semantic-icp"]
+    for seed in seeds:  # independent rooms: depth noise, labels, ground truth, books
+        room = build_room(RoomConfig(seed=seed))  # the meshes do not depend on the accuracy
+        configs = [RoomConfig(seed=seed, label_accuracy=acc, robot_label_accuracy=acc)
+                   for acc in accuracies]
+        maps = [robot_semantic_map(room, cfg) for cfg in configs]
         for view in views:
-            headset, T_gt = headset_cloud(room, view, cfg)
+            headsets = [headset_cloud(room, view, cfg) for cfg in configs]
+            T_gt = headsets[0][1]
             for size in sizes:
-                rng = np.random.default_rng(size + 17)
-                src = headset.subsample(size, rng)
-                tgt = robot_map.subsample(3 * size, rng)
+                clouds = []  # (source, target) per label accuracy: same points, other labels
+                for (headset, _), robot_map in zip(headsets, maps):
+                    rng = np.random.default_rng(size + 17)
+                    clouds.append((headset.subsample(size, rng),
+                                   robot_map.subsample(3 * size, rng)))
+                    if not (np.array_equal(clouds[-1][0].points, clouds[0][0].points)
+                            and np.array_equal(clouds[-1][1].points, clouds[0][1].points)):
+                        raise RuntimeError("the simulator's points depend on the label accuracy")
+                src, tgt = clouds[0]
                 if not warm:  # compile/load the numba kernels outside the timings
                     for semantic in (False, True):
                         run_ours(src, tgt, T_gt, (0.5, D_FINAL), semantic)
@@ -222,23 +244,30 @@ def main(argv=None) -> int:
                         init = T_gt @ offset_about_centroid(
                             np.random.default_rng(1000 * trial + size), src.points.mean(axis=0),
                             metres, degrees)
-                        for method, fn in methods.items():
-                            T, seconds = fn(src, tgt, init, stages)
+                        runs = [(m, None, src, tgt) for m in geometric]
+                        if "semantic-icp" in methods:
+                            runs += [("semantic-icp", acc, s_, t_)
+                                     for acc, (s_, t_) in zip(accuracies, clouds)]
+                        for method, acc, s_, t_ in runs:
+                            T, seconds = methods[method](s_, t_, init, stages)
                             err = pose_error(T, T_gt)
-                            rows[(method, acc, offset, size)].append(
-                                (err.d_se3, err.t_err_m, err.r_err_rad, seconds))
-                            print(f"  {method} acc={acc} {offset} N={size} view={view} "
-                                  f"d={err.d_se3:.4f} t={seconds:.3f}s", file=sys.stderr,
-                                  flush=True)
-                print(f"acc {acc:.0%} view {view} N={size} done", file=sys.stderr, flush=True)
+                            for a in (accuracies if acc is None else (acc,)):
+                                rows[(method, a, offset, size)].append(
+                                    (err.d_se3, err.t_err_m, err.r_err_rad, seconds))
+                            print(f"  {method} acc={'any' if acc is None else acc} {offset} "
+                                  f"N={size} view={view} d={err.d_se3:.4f} t={seconds:.3f}s",
+                                  file=sys.stderr, flush=True)
+                print(f"seed {seed} view {view} N={size} done", file=sys.stderr, flush=True)
     load_end = os.getloadavg()
-    print(f"schedule {args.schedule}; {trials} trial(s) x {len(views)} view(s) per cell; "
+    print(f"schedule {args.schedule}; {trials} trial(s) x {len(views)} view(s) x "
+          f"{len(seeds)} room seed(s) per cell; "
           f"load average (1, 5, 15 min) at start {load_start[0]:.2f} {load_start[1]:.2f} "
           f"{load_start[2]:.2f}, at end {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f}")
     report(rows, accuracies, sizes, list(methods))
     if args.json:
         with atomic_write(args.json, "w") as fh:
             json.dump({"schedule": args.schedule, "trials": trials, "views": views,
+                       "seeds": seeds,
                        "load_start": load_start, "load_end": load_end,
                        "rows": [{"method": m, "label_accuracy": a, "offset": o, "n": n,
                                  "trials": [dict(zip(("d_se3", "t_err_m", "r_err_rad",

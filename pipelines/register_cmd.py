@@ -54,7 +54,8 @@ def _common(parser, default_method: str) -> None:
     parser.add_argument("--alpha", type=float, default=2.0, help="Cauchy kernel alpha (2.0)")
     parser.add_argument("--semantic-weight", choices=("inside", "outside"), default="outside",
                         help="omega inside the Cauchy kernel (eq. (7)) or outside (Parkison)")
-    parser.add_argument("--max-iterations", type=int, default=60, help="outer iterations (60)")
+    parser.add_argument("--max-iterations", type=int, default=60,
+                        help="outer iterations at the final correspondence distance (60)")
     parser.add_argument("--estimator", metavar="NAME",
                         help="a registration estimator from `octofactor plugins` (overrides "
                         "--method; receives the clouds, --init and the class probabilities)")

@@ -176,6 +176,24 @@ def test_both_anneal_schedules_recover_the_transform(anneal):
     assert err.t_err_m < 5e-3 and err.r_err_rad < 2e-3
 
 
+
+def test_annealing_stages_do_not_starve_the_final_stage():
+    # five stages (1.0 m -> 0.2 m, decay 0.7): max_iterations bounds the final stage only, so
+    # the stage whose convergence is tested always gets its budget
+    source, _, target, _, T_gt = make_pair(11, 3000)
+    init = T_gt @ random_pose(np.random.default_rng(5), 0.2, 0.2)
+    cfg = RegistrationConfig(max_correspondence_distance=0.2, initial_correspondence_distance=1.0,
+                             decay=0.7, anneal="convergence", max_iterations=4, tolerance=1e-3)
+    result = register(source, target, init, cfg)
+    assert result.converged, result.reason
+    assert result.iterations > cfg.max_iterations  # the annealing stages came on top
+    assert result.iterations == len(result.cost_log)
+    # an unreachable final distance (decay 1) still stops: max_iterations plus nothing
+    stuck = register(source, target, init, RegistrationConfig(
+        max_correspondence_distance=0.2, initial_correspondence_distance=1.0, decay=1.0,
+        max_iterations=5))
+    assert not stuck.converged and stuck.iterations == 5 and stuck.reason == "max iterations"
+
 def test_bad_anneal_settings_are_rejected():
     with pytest.raises(EstimationError, match="anneal"):
         RegistrationConfig(anneal="sometimes")

@@ -86,6 +86,32 @@ def test_robot_map_covers_every_headset_view(room):
         assert np.median(dist) < 0.05, view
 
 
+
+def test_label_accuracy_changes_only_the_labels(room):
+    # depth noise and label noise have separate random streams: the same points for every
+    # label accuracy (headset views and the robot's map), different labels
+    from perception.simulation.room import robot_semantic_map
+
+    clean = RoomConfig(**SMALL, label_accuracy=1.0, robot_label_accuracy=1.0)
+    noisy = RoomConfig(**SMALL, label_accuracy=0.5, robot_label_accuracy=0.5)
+    for view in ("desk", "dining"):
+        a, T_a = headset_cloud(room, view, clean)
+        b, T_b = headset_cloud(room, view, noisy)
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(T_a, T_b)
+        agree = np.mean(a.labels == b.labels)
+        assert 0.3 < agree < 0.8, (view, agree)  # about half the labels flipped
+    map_a = robot_semantic_map(room, clean)
+    map_b = robot_semantic_map(room, noisy)
+    np.testing.assert_array_equal(map_a.points, map_b.points)
+    assert np.mean(map_a.labels == map_b.labels) < 0.99
+    # a different seed still gives different depth noise (compared in the map frame)
+    other, T_other = headset_cloud(room, "dining", RoomConfig(**SMALL, seed=1,
+                                                               label_accuracy=1.0))
+    in_map = transform_points(T_a, a.points)
+    assert len(other) != len(a) or not np.allclose(transform_points(T_other, other.points),
+                                                   in_map, atol=1e-6)
+
 @pytest.mark.slow
 def test_cli_simulate_then_register(tmp_path):
     from pipelines.cli import main

@@ -14,6 +14,9 @@ one class (:data:`CLASS_NAMES`).
 - Labels: the true class with probability ``label_accuracy``, else a uniformly random other
   class; probabilities are calibrated soft scores (``acc`` on the observed class, the rest
   shared equally).
+- Randomness: depth noise and label noise come from separate streams of one seed
+  (:func:`random_streams`), so the map's and the headset's points are the same for every
+  label accuracy; only the labels differ.
 
 In memory::
 
@@ -216,9 +219,25 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
     return T
 
 
+def random_streams(entropy: int) -> tuple[np.random.Generator, np.random.Generator]:
+    """Return independent (geometry, labels) generators for one seed.
+
+    Depth noise and label noise draw from separate streams (two ``SeedSequence`` children),
+    so the geometry of a view is the same for every label accuracy: only the labels change.
+    """
+    geometry, labels = np.random.SeedSequence(entropy).spawn(2)
+    return np.random.default_rng(geometry), np.random.default_rng(labels)
+
+
 def render_view(room: Room, T_world_camera: np.ndarray, rng: np.random.Generator,
-                label_accuracy: float) -> SemanticCloud:
-    """Return the noisy labelled points (world frame) one camera sees by ray casting."""
+                label_accuracy: float, label_rng: np.random.Generator | None = None
+                ) -> SemanticCloud:
+    """Return the noisy labelled points (world frame) one camera sees by ray casting.
+
+    ``rng`` draws the depth noise, ``label_rng`` (default: ``rng``) the label noise; give
+    separate streams (:func:`random_streams`) to keep the points independent of
+    ``label_accuracy``.
+    """
     import open3d as o3d
 
     cfg = room.config
@@ -239,7 +258,8 @@ def render_view(room: Room, T_world_camera: np.ndarray, rng: np.random.Generator
     z = (points - T_world_camera[:3, 3]) @ T_world_camera[:3, 2]
     unit = direction / np.linalg.norm(direction, axis=1, keepdims=True)
     points = points + unit * (rng.normal(size=len(z)) * cfg.depth_noise * z ** 2)[:, None]
-    labels = noisy_labels(room.geometry_class[gid], label_accuracy, len(CLASS_NAMES), rng)
+    labels = noisy_labels(room.geometry_class[gid], label_accuracy, len(CLASS_NAMES),
+                          rng if label_rng is None else label_rng)
     return labels_to_cloud(points, labels, label_accuracy)
 
 
@@ -288,8 +308,9 @@ def robot_semantic_map(room: Room, config: RoomConfig | None = None,
     ``use_octree``), otherwise voxel fusion of the labelled points at the same resolution.
     """
     cfg = config or room.config
-    rng = np.random.default_rng(cfg.seed + 1)
-    views = [(T, render_view(room, T, rng, cfg.robot_label_accuracy)) for T in robot_views(cfg)]
+    rng, label_rng = random_streams(cfg.seed + 1)
+    views = [(T, render_view(room, T, rng, cfg.robot_label_accuracy, label_rng))
+             for T in robot_views(cfg)]
     tree = None
     if use_octree:
         try:
@@ -332,9 +353,9 @@ def headset_cloud(room: Room, view: str, config: RoomConfig | None = None
     cfg = config or room.config
     if view not in VIEWPOINTS:
         raise PerceptionError(f"unknown viewpoint {view!r}; choose from {sorted(VIEWPOINTS)}")
-    rng = np.random.default_rng(cfg.seed * 100 + sorted(VIEWPOINTS).index(view))
+    rng, label_rng = random_streams(cfg.seed * 100 + sorted(VIEWPOINTS).index(view))
     eye, target = VIEWPOINTS[view]
-    cloud = render_view(room, look_at(eye, target), rng, cfg.label_accuracy)
+    cloud = render_view(room, look_at(eye, target), rng, cfg.label_accuracy, label_rng)
     if cfg.headset_voxel > 0:
         cloud = SemanticCloud.fuse_voxels(cloud.points, cloud.probs, cfg.headset_voxel,
                                           CLASS_NAMES)
