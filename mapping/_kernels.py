@@ -1979,8 +1979,15 @@ def ot_decode(data, start, node_bytes):
     """
     avail = data.shape[0] - start
     max_nodes = avail // node_bytes
-    cap_blocks = max_nodes + 2
     vb = node_bytes - 1
+    # every node is node_bytes long, so the inner nodes (non-zero child mask) can be counted
+    # before parsing: one block of 8 per inner node plus the root's block bounds the
+    # allocation (a bound of one block per node zeroed ~8x more memory than needed)
+    inner = 0
+    for i in range(max_nodes):
+        if data[start + i * node_bytes + vb] != 0:
+            inner += 1
+    cap_blocks = inner + 2
     payload = np.zeros((cap_blocks * 8, vb), np.uint8)
     first = np.full(payload.shape[0], -1, np.int32)
     cmask = np.zeros(payload.shape[0], np.uint8)

@@ -238,13 +238,15 @@ def _read_ot(data: bytes, hdr: _Header, path) -> OcTree:
         if err >= 0:
             raise FormatError(path, "truncated or corrupt .ot payload (the node tree does not "
                               "end where the header's size says)", offset=int(err))
+        # each parsed node is one tree node: the count needs no traversal
+        n_parsed = (int(end) - hdr.data_start) // nbytes
+        if n_parsed != hdr.size:
+            raise FormatError(path, f"tree size mismatch: header says {hdr.size} nodes, the "
+                              f"payload holds {n_parsed}", offset=int(end))
         val = np.ascontiguousarray(payload[:, :4]).view("<f4").reshape(-1).astype(np.float32)
         tree = _make_tree(OcTree, hdr.res, nb * 8, first, cmask, val, nb)
         if hdr.tree_id == "ColorOcTree":
             tree.color = np.ascontiguousarray(payload[: nb * 8, 4:7])
-        if tree.size() != hdr.size:
-            raise FormatError(path, f"tree size mismatch: header says {hdr.size} nodes, the "
-                              f"payload holds {tree.size()}", offset=int(end))
     if hdr.tree_id != "OcTree":
         tree._file_id = hdr.tree_id
         if hdr.tree_id == "ColorOcTree":

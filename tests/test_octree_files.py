@@ -45,6 +45,19 @@ def test_geb079_ot_equals_liboctomaps_and_round_trips(geb, tmp_path):
     assert back.to_bytes_bt() == data
 
 
+def test_ot_whose_header_claims_more_nodes_than_the_tree_has(geb, tmp_path):
+    # the tree ends before the header's count: an error naming both counts and the offset
+    ot = geb[2].to_bytes_ot()
+    n = geb[2].size()
+    bad = ot.replace(f"size {n}\n".encode(), f"size {n + 1}\n".encode(), 1) + bytes(5)
+    path = tmp_path / "more.ot"
+    path.write_bytes(bad)
+    with pytest.raises(FormatError, match=f"header says {n + 1} nodes, the payload holds {n}"):
+        OcTree.read(path)
+    path.write_bytes(ot)
+    assert OcTree.read(path).size() == n
+
+
 def test_single_update_example_files_of_octomap_md():
     tree = OcTree(0.1)
     for _ in range(11):
