@@ -88,6 +88,34 @@ def _key_checked(c, rf):
     return -1
 
 
+@njit(cache=True, inline="always")
+def _ray_end(px, py, pz, ox, oy, oz, max_range):
+    """The free ray of one point as insertPointCloud computes it (float32 like liboctomap).
+
+    Returns (dx, dy, dz, norm, hit, ex, ey, ez): the direction (point - origin), its length,
+    whether the end cell is a hit (False when the ray is cut at ``max_range``) and the end
+    point (the point itself, or origin + max_range along the unit direction).
+    """
+    ddx = np.float32(px - ox)
+    ddy = np.float32(py - oy)
+    ddz = np.float32(pz - oz)
+    nrm = math.sqrt(np.float64(np.float32(np.float32(ddx * ddx + ddy * ddy) + ddz * ddz)))
+    if max_range >= 0.0 and not (nrm <= max_range):
+        if nrm > 0:
+            fl = np.float32(nrm)
+            ndx = np.float32(ddx / fl)
+            ndy = np.float32(ddy / fl)
+            ndz = np.float32(ddz / fl)
+        else:
+            ndx = ddx
+            ndy = ddy
+            ndz = ddz
+        mr = np.float32(max_range)
+        return (ddx, ddy, ddz, nrm, False, np.float32(ox + np.float32(ndx * mr)),
+                np.float32(oy + np.float32(ndy * mr)), np.float32(oz + np.float32(ndz * mr)))
+    return ddx, ddy, ddz, nrm, True, px, py, pz
+
+
 @njit(cache=True)
 def coords_to_keys(points, rf):
     """(N,3) float32 points -> (N,3) int64 keys, -1 where coordToKeyChecked fails."""
@@ -280,29 +308,7 @@ def _mark_rays(pts, ox, oy, oz, ok0, res, max_range, i0, tab_keys, tab_vals, poo
             counters[1] += 1
             continue
         # endpoint of the free ray, and whether the end cell is a hit
-        ddx = np.float32(px - ox)
-        ddy = np.float32(py - oy)
-        ddz = np.float32(pz - oz)
-        nrm = math.sqrt(np.float64(np.float32(np.float32(ddx * ddx + ddy * ddy) + ddz * ddz)))
-        hit = True
-        ex = px
-        ey = py
-        ez = pz
-        if max_range >= 0.0 and not (nrm <= max_range):
-            hit = False
-            if nrm > 0:
-                fl = np.float32(nrm)
-                ndx = np.float32(ddx / fl)
-                ndy = np.float32(ddy / fl)
-                ndz = np.float32(ddz / fl)
-            else:
-                ndx = ddx
-                ndy = ddy
-                ndz = ddz
-            mr = np.float32(max_range)
-            ex = np.float32(ox + np.float32(ndx * mr))
-            ey = np.float32(oy + np.float32(ndy * mr))
-            ez = np.float32(oz + np.float32(ndz * mr))
+        ddx, ddy, ddz, nrm, hit, ex, ey, ez = _ray_end(px, py, pz, ox, oy, oz, max_range)
         k1[0] = _key_checked(ex, rf)
         k1[1] = _key_checked(ey, rf)
         k1[2] = _key_checked(ez, rf)
@@ -478,29 +484,7 @@ def _mark_rays_grid(pts, ox, oy, oz, ok0, res, max_range, i0, pool, bcodes, coun
         if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
             counters[1] += 1
             continue
-        ddx = np.float32(px - ox)
-        ddy = np.float32(py - oy)
-        ddz = np.float32(pz - oz)
-        nrm = math.sqrt(np.float64(np.float32(np.float32(ddx * ddx + ddy * ddy) + ddz * ddz)))
-        hit = True
-        ex = px
-        ey = py
-        ez = pz
-        if max_range >= 0.0 and not (nrm <= max_range):
-            hit = False
-            if nrm > 0:
-                fl = np.float32(nrm)
-                ndx = np.float32(ddx / fl)
-                ndy = np.float32(ddy / fl)
-                ndz = np.float32(ddz / fl)
-            else:
-                ndx = ddx
-                ndy = ddy
-                ndz = ddz
-            mr = np.float32(max_range)
-            ex = np.float32(ox + np.float32(ndx * mr))
-            ey = np.float32(oy + np.float32(ndy * mr))
-            ez = np.float32(oz + np.float32(ndz * mr))
+        ddx, ddy, ddz, nrm, hit, ex, ey, ez = _ray_end(px, py, pz, ox, oy, oz, max_range)
         ex_k = _key_checked(ex, rf)
         ey_k = _key_checked(ey, rf)
         ez_k = _key_checked(ez, rf)
@@ -774,29 +758,7 @@ def _mark_rays_dense(pts, ox, oy, oz, ok0, res, max_range, grid, glo, ghi, row, 
         if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
             counters[1] += 1
             continue
-        ddx = np.float32(px - ox)
-        ddy = np.float32(py - oy)
-        ddz = np.float32(pz - oz)
-        nrm = math.sqrt(np.float64(np.float32(np.float32(ddx * ddx + ddy * ddy) + ddz * ddz)))
-        hit = True
-        ex = px
-        ey = py
-        ez = pz
-        if max_range >= 0.0 and not (nrm <= max_range):
-            hit = False
-            if nrm > 0:
-                fl = np.float32(nrm)
-                ndx = np.float32(ddx / fl)
-                ndy = np.float32(ddy / fl)
-                ndz = np.float32(ddz / fl)
-            else:
-                ndx = ddx
-                ndy = ddy
-                ndz = ddz
-            mr = np.float32(max_range)
-            ex = np.float32(ox + np.float32(ndx * mr))
-            ey = np.float32(oy + np.float32(ndy * mr))
-            ez = np.float32(oz + np.float32(ndz * mr))
+        ddx, ddy, ddz, nrm, hit, ex, ey, ez = _ray_end(px, py, pz, ox, oy, oz, max_range)
         ex_k = _key_checked(ex, rf)
         ey_k = _key_checked(ey, rf)
         ez_k = _key_checked(ez, rf)
