@@ -49,6 +49,20 @@ def smallest_eigenvector(a00, a01, a02, a11, a12, a22):
     return vx / nrm, vy / nrm, vz / nrm
 
 
+@numba.njit(cache=True, inline="always")
+def _write_plane(out: np.ndarray, s: float, nx: float, ny: float, nz: float) -> None:
+    """Fill the 3x3 ``out`` with I - s n n^T (n = (nx, ny, nz) the unit surface normal)."""
+    out[0, 0] = 1.0 - s * nx * nx
+    out[0, 1] = -s * nx * ny
+    out[0, 2] = -s * nx * nz
+    out[1, 0] = -s * ny * nx
+    out[1, 1] = 1.0 - s * ny * ny
+    out[1, 2] = -s * ny * nz
+    out[2, 0] = -s * nz * nx
+    out[2, 1] = -s * nz * ny
+    out[2, 2] = 1.0 - s * nz * nz
+
+
 @numba.njit(cache=True)
 def regularise_covariances(cov: np.ndarray, epsilon: float) -> np.ndarray:
     """Replace the eigenvalues of each (N, 3, 3) covariance by (epsilon, 1, 1).
@@ -61,15 +75,7 @@ def regularise_covariances(cov: np.ndarray, epsilon: float) -> np.ndarray:
     for m in range(n):
         nx, ny, nz = smallest_eigenvector(cov[m, 0, 0], cov[m, 0, 1], cov[m, 0, 2],
                                           cov[m, 1, 1], cov[m, 1, 2], cov[m, 2, 2])
-        out[m, 0, 0] = 1.0 - s * nx * nx
-        out[m, 0, 1] = -s * nx * ny
-        out[m, 0, 2] = -s * nx * nz
-        out[m, 1, 0] = -s * ny * nx
-        out[m, 1, 1] = 1.0 - s * ny * ny
-        out[m, 1, 2] = -s * ny * nz
-        out[m, 2, 0] = -s * nz * nx
-        out[m, 2, 1] = -s * nz * ny
-        out[m, 2, 2] = 1.0 - s * nz * nz
+        _write_plane(out[m], s, nx, ny, nz)
     return out
 
 
@@ -107,15 +113,7 @@ def neighbour_covariances(points: np.ndarray, idx: np.ndarray, epsilon: float) -
             a12 += dy * dz
             a22 += dz * dz
         nx, ny, nz = smallest_eigenvector(a00 / k, a01 / k, a02 / k, a11 / k, a12 / k, a22 / k)
-        out[m, 0, 0] = 1.0 - s * nx * nx
-        out[m, 0, 1] = -s * nx * ny
-        out[m, 0, 2] = -s * nx * nz
-        out[m, 1, 0] = -s * ny * nx
-        out[m, 1, 1] = 1.0 - s * ny * ny
-        out[m, 1, 2] = -s * ny * nz
-        out[m, 2, 0] = -s * nz * nx
-        out[m, 2, 1] = -s * nz * ny
-        out[m, 2, 2] = 1.0 - s * nz * nz
+        _write_plane(out[m], s, nx, ny, nz)
     return out
 
 
