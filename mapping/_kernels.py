@@ -522,7 +522,10 @@ def _mark_rays_grid(pts, ox, oy, oz, ok0, res, max_range, i0, pool, bcodes, coun
             ey_r = ey_k - gly
             ez_r = ez_k - glz
             while True:
-                # mark the current cell (bit 0 = free; an occupied bit 1 is kept), then step
+                # mark the current cell (bit 0 = free; an occupied bit 1 is kept), then step.
+                # The mark is repeated in each of the four axis branches on purpose: choosing
+                # the axis first and marking once measured 5-10 % slower (CPU, one thread,
+                # scan.dat through this path at 0.1 and 0.05 m)
                 if tx < ty:
                     if tx < tz:
                         if tx > lim:
@@ -683,50 +686,40 @@ def sort_rays(points, origin):
 
 
 @njit(cache=True, nogil=True)
-def scan_key_sets(points, origin, res, max_range, discretize):
-    """Free and occupied keys of one scan (computeUpdate), as sorted Morton codes.
+def discretize_points(points, res):
+    """The unique voxel centres of a scan's finite, in-map endpoints (insertPointCloud's
+    ``discretize``: one ray per endpoint voxel; a set, so the order does not matter).
 
-    Returns (codes uint64 sorted, is_hit bool, n_nonfinite, n_out_of_bounds, n_rays_failed).
-    This is :func:`scan_marks` of all rays, then :func:`emit_marks`; ``OcTree.insert_point_cloud``
-    instead marks chunks of rays on several threads and unites them with :func:`unite_marks`.
+    Returns (centres (M, 3) float32, n_nonfinite, n_out_of_bounds).
     """
     rf = 1.0 / res
     n = points.shape[0]
-    counters = np.zeros(4, np.int64)
-
-    # discretize: unique voxel centres of the endpoints (a set of keys: order does not matter)
-    pts = points
-    if discretize:
-        codes = np.empty(n, np.uint64)
-        m = 0
-        for i in range(n):
-            x = points[i, 0]
-            y = points[i, 1]
-            z = points[i, 2]
-            if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
-                counters[1] += 1
-                continue
-            kx = _key_checked(x, rf)
-            ky = _key_checked(y, rf)
-            kz = _key_checked(z, rf)
-            if kx < 0 or ky < 0 or kz < 0:
-                counters[2] += 1
-                continue
-            codes[m] = morton(kx, ky, kz)
-            m += 1
-        u = np.unique(codes[:m])
-        ks = codes_to_keys(u)
-        pts = np.empty((u.shape[0], 3), np.float32)
-        for i in range(u.shape[0]):
-            for a in range(3):
-                pts[i, a] = np.float32(_key_to_coord(ks[i, a], res))
-        n = pts.shape[0]
-
-    tab_keys, tab_vals, pool, bcodes, nb, counters2, _grid = scan_marks(
-        pts, origin, res, max_range, np.zeros(0, np.uint8))
-    codes, is_hit = emit_marks(pool, bcodes, nb)
-    return (codes, is_hit, counters[1] + counters2[1], counters[2] + counters2[2],
-            counters[3] + counters2[3])
+    codes = np.empty(n, np.uint64)
+    m = 0
+    n_nonfinite = 0
+    n_oob = 0
+    for i in range(n):
+        x = points[i, 0]
+        y = points[i, 1]
+        z = points[i, 2]
+        if not (np.isfinite(x) and np.isfinite(y) and np.isfinite(z)):
+            n_nonfinite += 1
+            continue
+        kx = _key_checked(x, rf)
+        ky = _key_checked(y, rf)
+        kz = _key_checked(z, rf)
+        if kx < 0 or ky < 0 or kz < 0:
+            n_oob += 1
+            continue
+        codes[m] = morton(kx, ky, kz)
+        m += 1
+    u = np.unique(codes[:m])
+    ks = codes_to_keys(u)
+    centres = np.empty((u.shape[0], 3), np.float32)
+    for i in range(u.shape[0]):
+        for a in range(3):
+            centres[i, a] = np.float32(_key_to_coord(ks[i, a], res))
+    return centres, n_nonfinite, n_oob
 
 
 @njit(cache=True)
@@ -1153,13 +1146,6 @@ def unite_marks(tab_keys, tab_vals, pool, bcodes, nb, pool2, bcodes2, nb2):
             for m in range(512):
                 pool[dst + m] |= pool2[src + m]
     return tab_keys, tab_vals, pool, bcodes, nb
-
-
-@njit(cache=True, nogil=True)
-def emit_marks(pool, bcodes, nb):
-    """Sorted Morton codes and hit flags of the marked cells of ``nb`` bricks. Releases the GIL."""
-    codes, upd, _ = emit_updates(pool, bcodes, nb, np.float32(1.0), np.float32(0.0))
-    return codes, upd > 0.5
 
 
 @njit(cache=True, nogil=True)

@@ -153,17 +153,15 @@ def _executor(n_workers: int):
 def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: float,
                   discretize: bool, hit_log: np.float32, miss_log: np.float32):
     """A scan's sorted codes, their log-odds updates, the number of hit cells and the counters
-    (non-finite, out of bounds, failed): kernels.scan_key_sets, the rays marked in shares on
-    numba's threads."""
+    (non-finite, out of bounds, failed): the rays marked in shares on numba's threads
+    (with ``discretize``, one ray per endpoint voxel centre)."""
     k = _k()
     from numba import get_num_threads
 
-    n = pts.shape[0]
+    skipped = (0, 0)
     if discretize:
-        codes, is_hit, n_nonfinite, n_oob, n_failed = k.scan_key_sets(pts, origin, res,
-                                                                      max_range, discretize)
-        upd = np.where(is_hit, hit_log, miss_log).astype(np.float32)
-        return codes, upd, int(is_hit.sum()), n_nonfinite, n_oob, n_failed
+        pts, *skipped = k.discretize_points(pts, res)
+    n = pts.shape[0]
     n_chunks = max(1, min(get_num_threads(), n // _PARALLEL_MIN_CHUNK))
     block = _PARALLEL_BLOCK if n_chunks > 1 else max(n, 1)
     empty = np.zeros(0, np.uint8)
@@ -192,7 +190,8 @@ def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: fl
                                                              nb, p[2], p[3], p[4])
     codes, upd, n_hit = k.emit_updates(pool, bcodes, nb, hit_log, miss_log)
     counts = [sum(int(p[5][j]) for p in parts) for j in (1, 2, 3)]
-    return codes, upd, int(n_hit), counts[0], counts[1], counts[2]
+    return (codes, upd, int(n_hit), counts[0] + int(skipped[0]), counts[1] + int(skipped[1]),
+            counts[2])
 
 
 class OcTree:
