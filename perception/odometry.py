@@ -443,13 +443,7 @@ def _dense_tensor(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
         return np.ascontiguousarray(cv2.resize(image, size, interpolation=interpolation))
 
     def camera(by: int) -> np.ndarray:
-        K = intr.K.copy()
-        if by > 1:
-            K[0, 0] /= by
-            K[1, 1] /= by
-            K[0, 2] = (intr.cx + 0.5) / by - 0.5
-            K[1, 2] = (intr.cy + 0.5) / by - 0.5
-        return K
+        return intr.resized(intr.width // by, intr.height // by).K
 
     def rgbd_image(frame: RgbdFrame, depth: np.ndarray):
         return o3d.t.geometry.RGBDImage(

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import gtsam
@@ -53,6 +53,15 @@ class CameraIntrinsics:
     def K(self) -> np.ndarray:  # noqa: N802 - the usual symbol for the camera matrix
         """The 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def resized(self, width: int, height: int) -> CameraIntrinsics:
+        """Return the intrinsics of the same camera with images resized to width x height.
+
+        Pixel centres stay at integer coordinates: x' = (x + 0.5) s - 0.5 per axis.
+        """
+        sx, sy = width / self.width, height / self.height
+        return replace(self, fx=self.fx * sx, fy=self.fy * sy, cx=(self.cx + 0.5) * sx - 0.5,
+                       cy=(self.cy + 0.5) * sy - 0.5, width=width, height=height)
 
 
 def read_camera_file(path: str | os.PathLike) -> CameraIntrinsics:
@@ -132,6 +141,18 @@ class RgbdFrame:
     T_world_camera_gt: gtsam.Pose3 | None = None
     rgb_path: Path | None = None
     depth_path: Path | None = None
+
+
+def resize_frame(frame: RgbdFrame, width: int, height: int) -> RgbdFrame:
+    """Return ``frame`` with its images resized to width x height (colour by area averaging,
+    depth by nearest neighbour so that no depth is invented across edges)."""
+    if frame.rgb.shape[1] == width and frame.rgb.shape[0] == height:
+        return frame
+    import cv2
+
+    rgb = cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_AREA)
+    depth = cv2.resize(frame.depth_m, (width, height), interpolation=cv2.INTER_NEAREST)
+    return replace(frame, rgb=rgb, depth_m=depth)
 
 
 def read_timestamp_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]:

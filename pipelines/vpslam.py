@@ -401,24 +401,10 @@ def _vo_resampler(intr, scale: float):
     """(intrinsics, frame -> frame) for running the odometry on resized images."""
     if scale == 1.0:
         return intr, lambda frame: frame
-    from dataclasses import replace
-
-    import cv2
+    from perception.rgbd import resize_frame
 
     width, height = max(1, round(intr.width * scale)), max(1, round(intr.height * scale))
-    sx, sy = width / intr.width, height / intr.height
-    # pixel centres at integers: x' = (x + 0.5) s - 0.5
-    small = replace(intr, fx=intr.fx * sx, fy=intr.fy * sy, cx=(intr.cx + 0.5) * sx - 0.5,
-                    cy=(intr.cy + 0.5) * sy - 0.5, width=width, height=height)
-
-    def resize(frame):
-        if frame.rgb.shape[1] == width and frame.rgb.shape[0] == height:
-            return frame
-        rgb = cv2.resize(frame.rgb, (width, height), interpolation=cv2.INTER_AREA)
-        depth = cv2.resize(frame.depth_m, (width, height), interpolation=cv2.INTER_NEAREST)
-        return replace(frame, rgb=rgb, depth_m=depth)
-
-    return small, resize
+    return intr.resized(width, height), lambda frame: resize_frame(frame, width, height)
 
 
 def _finite_cov(cov) -> np.ndarray:

@@ -274,3 +274,17 @@ def test_voxel_filter_property_against_itertools_reference():
     points = (centres[:, None, :] + jitter[None]).reshape(-1, 3)
     filtered = voxel_filter(points, size)
     np.testing.assert_allclose(np.sort(filtered, axis=0), np.sort(centres, axis=0), atol=1e-7)
+
+
+def test_resized_intrinsics_keep_pixel_centres_and_project_alike():
+    from perception.rgbd import CameraIntrinsics
+
+    intr = CameraIntrinsics(525.0, 520.0, 319.5, 239.5, 640, 480)
+    half = intr.resized(320, 240)
+    # a pixel's centre (u, v) at full size lies at ((u + 0.5) / 2 - 0.5, ...) at half size
+    point = np.array([0.3, -0.2, 2.0])
+    uv_full = (intr.K @ point)[:2] / point[2]
+    uv_half = (half.K @ point)[:2] / point[2]
+    np.testing.assert_allclose(uv_half, (uv_full + 0.5) / 2 - 0.5)
+    assert (half.width, half.height, half.depth_scale) == (320, 240, intr.depth_scale)
+    assert half.resized(640, 480) == intr
