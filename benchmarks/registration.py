@@ -203,7 +203,8 @@ def main(argv=None) -> int:
               f"{len(saved['views'])} view(s) x {len(saved.get('seeds', [0]))} room seed(s) "
               "per cell")
         report(defaultdict(list, rows), sorted({k[1] for k in rows}, reverse=True),
-               sorted({k[3] for k in rows}), [m for m in METHODS if any(k[0] == m for k in rows)])
+               sorted({k[3] for k in rows}), [m for m in METHODS if any(k[0] == m for k in rows)],
+               saved["trials"])
         return 0
     sizes = [int(s) for s in (args.sizes or ("1000,10000" if args.quick else
                                              "1000,10000,50000")).split(",")]
@@ -263,7 +264,7 @@ def main(argv=None) -> int:
           f"{len(seeds)} room seed(s) per cell; "
           f"load average (1, 5, 15 min) at start {load_start[0]:.2f} {load_start[1]:.2f} "
           f"{load_start[2]:.2f}, at end {load_end[0]:.2f} {load_end[1]:.2f} {load_end[2]:.2f}")
-    report(rows, accuracies, sizes, list(methods))
+    report(rows, accuracies, sizes, list(methods), trials)
     if args.json:
         with atomic_write(args.json, "w") as fh:
             json.dump({"schedule": args.schedule, "trials": trials, "views": views,
@@ -276,17 +277,33 @@ def main(argv=None) -> int:
     return 0
 
 
-def report(rows, accuracies, sizes, methods) -> None:
+def ratio_interval(data: np.ndarray, ref: np.ndarray, trials: int, n_boot: int = 2000,
+                   seed: int = 0) -> tuple[float, float]:
+    """Return the 95 % bootstrap interval of median(data) / median(ref).
+
+    Resamples whole data sets (the ``trials`` consecutive rows of one room and view share
+    their clouds, so they are not independent) with replacement, keeping the pairing.
+    """
+    n_sets = len(data) // trials
+    rng = np.random.default_rng(seed)
+    picks = rng.integers(0, n_sets, size=(n_boot, n_sets))
+    rows = (picks[:, :, None] * trials + np.arange(trials)).reshape(n_boot, -1)
+    ratios = np.median(data[rows], axis=1) / np.median(ref[rows], axis=1)
+    return float(np.percentile(ratios, 2.5)), float(np.percentile(ratios, 97.5))
+
+
+def report(rows, accuracies, sizes, methods, trials: int = 1) -> None:
     """Print the markdown table; ratios against Open3D (CauchyLoss 1.0) on the same clouds.
 
     "paired" is the median over trials of d_SE3 / d_SE3(open3d) of the same trial (same
     clouds and initial guess): less sensitive than the ratio of medians to which local
-    minimum each method lands in.
+    minimum each method lands in. "95 % CI" is the bootstrap interval of the ratio of
+    medians over data sets (room x view; :func:`ratio_interval`).
     """
     print("| method | label acc | offset | N | success | median d_SE3 | median t_err m | "
           "median r_err deg | median time s | time / open3d | d_SE3 / open3d | "
-          "paired d_SE3 / open3d | d_SE3 / open3d-c2 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "95 % CI | paired d_SE3 / open3d | d_SE3 / open3d-c2 |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for offset in OFFSETS:
         for size in sizes:
             for acc in accuracies:
@@ -304,13 +321,16 @@ def report(rows, accuracies, sizes, methods) -> None:
                             return "-"
                         return f"{np.median(data[:, col]) / np.median(other[:, col]):.2f}"
 
-                    paired = "-" if ref.shape != data.shape else \
-                        f"{np.median(data[:, 0] / ref[:, 0]):.2f}"
+                    paired = interval = "-"
+                    if ref.shape == data.shape:
+                        paired = f"{np.median(data[:, 0] / ref[:, 0]):.2f}"
+                        lo, hi = ratio_interval(data[:, 0], ref[:, 0], trials)
+                        interval = f"{lo:.2f}-{hi:.2f}"
                     print(f"| {method} | {acc:.0%} | {offset} | {size} | {ok.mean():.0%} | "
                           f"{d:.4f} | {np.median(data[:, 1]):.4f} | "
                           f"{np.rad2deg(np.median(data[:, 2])):.2f} | "
                           f"{np.median(data[:, 3]):.3f} | {ratio(ref, 3)} | {ratio(ref, 0)} | "
-                          f"{paired} | {ratio(ref2, 0)} |")
+                          f"{interval} | {paired} | {ratio(ref2, 0)} |")
 
 
 if __name__ == "__main__":

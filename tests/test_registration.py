@@ -4,6 +4,7 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from estimation.errors import EstimationError
 from estimation.registration import (
@@ -11,10 +12,12 @@ from estimation.registration import (
     BatchedGicpFactor,
     Registration,
     RegistrationConfig,
+    SemanticIndex,
     gicp_terms,
     point_covariances,
     pose_error,
     register,
+    semantic_correspondences,
     semantic_icp,
     whitening,
 )
@@ -385,3 +388,49 @@ def test_result_adds_a_between_factor():
     failed = register(source[:3], target)
     with pytest.raises(EstimationError, match="did not converge"):
         failed.add_to_pose_graph(pg, 0, 1)
+
+
+# -- Semantic-ICP's E-step ---------------------------------------------------------------------
+def _index(points, labels, c=3, acc=0.9):
+    return SemanticIndex(np.asarray(points, float), one_hot(np.asarray(labels), c, acc))
+
+
+def test_posterior_estep_normalises_per_source_point():
+    # target: a class-0 point at the origin, a class-1 point 10 cm away, a class-0 point far off
+    index = _index([[0, 0, 0], [0.1, 0, 0], [5, 0, 0]], [0, 1, 0])
+    tree = cKDTree(index.points)
+    # source 0 sits on target 0 with the right label; source 1 sits on target 0 but is labelled 1
+    moved = np.array([[0.005, 0, 0], [0.0, 0.005, 0]])
+    probs = one_hot(np.array([0, 1]), 3, 0.9)
+    post = semantic_correspondences(moved, probs, index, 0.3, residual_sigma=0.02,
+                                    target_tree=tree, posterior=True)
+    sums = np.bincount(post.source_idx, post.weights, minlength=2)
+    np.testing.assert_allclose(sums, 1.0, atol=1e-3)  # less the dropped (< min_weight) ones
+    # the nearest neighbour of source 0 is also its class candidate: counted once
+    assert np.sum(post.source_idx == 0) == 1
+    # source 1's vote goes to its geometric neighbour (1 cm off) over the class-1 point (10 cm)
+    w1 = dict(zip(post.target_idx[post.source_idx == 1], post.weights[post.source_idx == 1]))
+    assert w1[0] > 0.9
+    # the unnormalised paper weights keep class candidates only: source 1 matches the class-1 point
+    weight = semantic_correspondences(moved, probs, index, 0.3, residual_sigma=0.3)
+    assert set(weight.target_idx[weight.source_idx == 1]) == {1}
+    assert np.all(weight.weights <= 0.9 * 0.9 + 1e-12)
+
+
+def test_bad_semantic_estep_is_rejected():
+    with pytest.raises(EstimationError, match="semantic_estep"):
+        RegistrationConfig(semantic_estep="bayes")
+
+
+@pytest.mark.parametrize("estep", ["posterior", "weight"])
+def test_semantic_icp_with_half_the_labels_wrong_still_registers(estep):
+    from perception.simulation.room import noisy_labels
+
+    source, labels_s, target, labels_t, T_gt = make_pair(21)
+    rng = np.random.default_rng(3)
+    noisy_s, noisy_t = noisy_labels(labels_s, 0.5, 4, rng), noisy_labels(labels_t, 0.5, 4, rng)
+    result = semantic_icp(source, one_hot(noisy_s, acc=0.5), target, one_hot(noisy_t, acc=0.5),
+                          config=RegistrationConfig(semantic_estep=estep))
+    assert result.converged, result.reason
+    err = pose_error(result.T, T_gt)
+    assert err.t_err_m < 5e-3 and err.r_err_rad < 2e-3

@@ -204,20 +204,31 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                              index: SemanticIndex, d_max: float,
                              residual_sigma: float, top_classes: int = 2,
                              min_weight: float = 1e-3,
-                             min_class_prob: float = 0.1) -> Correspondences:
+                             min_class_prob: float = 0.1,
+                             target_tree: cKDTree | None = None,
+                             posterior: bool = False) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
-    For each source point and each of its ``top_classes`` most probable classes c, the
-    correspondence candidate is the nearest target point whose argmax label is c (eq. (8):
-    the correspondence is uniform over the nearest neighbours within the class). Its weight is
-    the E-step posterior
+    Candidates: for each source point and each of its ``top_classes`` most probable classes c,
+    the nearest target point whose argmax label is c (eq. (8): the correspondence is uniform
+    over the nearest neighbours within the class), scored
 
         omega_kc  propto  p(r_kc | i_kc; T_old) * p(c | x_s) * p(c | x_t)
 
-    with an isotropic Gaussian residual likelihood of standard deviation ``residual_sigma``
-    (the current alignment uncertainty, annealed by the caller). Candidates with omega below
-    ``min_weight`` are dropped; classes after the most probable one are only searched where
-    their probability reaches ``min_class_prob`` (the rest could not pass ``min_weight``).
+    with an isotropic Gaussian residual likelihood of standard deviation ``residual_sigma``.
+    With ``target_tree`` (the tree over all target points) the geometric nearest neighbour j
+    is a candidate too, scored with the label agreement summed over the classes, eq. (5)'s
+    ``sum_c p(c | x_s) p(c | x_t,j)``; a class candidate that is that same point is not
+    counted twice.
+
+    ``posterior=False`` returns these scores as the weights (Parkison et al.: a point whose
+    labels disagree with every candidate loses its vote). ``posterior=True`` normalises them
+    over each source point's candidates: the E-step posterior of which candidate is the
+    correspondence. Label noise then moves a point's vote between its candidates instead of
+    removing it, so Semantic-ICP degrades towards GICP as the labels get worse.
+
+    Candidates with omega below ``min_weight`` are dropped (after normalising); classes after
+    the most probable one are only searched where their probability reaches ``min_class_prob``.
     """
     n, c_src = source_probs.shape
     if c_src != index.n_classes:
@@ -230,6 +241,17 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         order[:, rank] = masked.argmax(axis=1)
         masked[np.arange(n), order[:, rank]] = -np.inf
     src_rows, tgt_rows, dists, prior = [], [], [], []
+    nearest = np.full(n, -1, dtype=np.int64)
+    if target_tree is not None:
+        dist, j = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max,
+                                    workers=_workers(n))
+        ok = np.isfinite(dist)
+        rows = np.nonzero(ok)[0]
+        nearest[rows] = j[ok]
+        src_rows.append(rows)
+        tgt_rows.append(nearest[rows])
+        dists.append(dist[ok])
+        prior.append(np.einsum("ij,ij->i", source_probs[rows], index.probs[nearest[rows]]))
     for rank in range(top):
         cls_of_point = order[:, rank]
         searched = np.ones(n, bool) if rank == 0 else \
@@ -241,13 +263,14 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
             dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
                                  workers=_workers(len(rows)))
             ok = np.isfinite(dist)
-            if not ok.any():
-                continue
-            rows = rows[ok]
             tgt = index.members[c][j[ok]]
+            fresh = tgt != nearest[rows[ok]]  # the nearest neighbour already counts class c
+            if not fresh.any():
+                continue
+            rows, tgt, dist = rows[ok][fresh], tgt[fresh], dist[ok][fresh]
             src_rows.append(rows)
             tgt_rows.append(tgt)
-            dists.append(dist[ok])
+            dists.append(dist)
             prior.append(source_probs[rows, c] * index.probs[tgt, c])
     if not src_rows:
         empty = np.zeros(0)
@@ -257,5 +280,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     dist = np.concatenate(dists)
     # eq. (5): label agreement p(c|x_s) p(c|x_t) times the residual likelihood under T_old
     omega = np.concatenate(prior) * np.exp(-0.5 * (dist / residual_sigma) ** 2)
+    if posterior:
+        total = np.bincount(src, omega, minlength=n)
+        omega = omega / np.maximum(total[src], 1e-300)
     keep = omega >= min_weight
     return Correspondences(src[keep], tgt[keep], omega[keep], dist[keep], n)

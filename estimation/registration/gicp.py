@@ -70,6 +70,13 @@ class RegistrationConfig:
     tolerance : stop when ||Logmap(T_old^-1 T)|| < tolerance
     semantic_weight : "inside" = rho(omega_k e_k) (Nakamura et al. eq. (7)), "outside" =
         omega_k rho(e_k) (Parkison et al.'s implementation)
+    semantic_estep : how Semantic-ICP's E-step scores candidates
+        (:func:`.correspondences.semantic_correspondences`). "posterior" (default): the
+        geometric nearest neighbour is a candidate too, the scores are normalised per source
+        point, and the residual sigma is re-estimated every iteration (the M-step of the
+        variance, ``sigma^2 = sum omega d^2 / (3 sum omega)``, started at d_max); "weight":
+        unnormalised scores with sigma = d_max, class candidates only (the earlier behaviour:
+        it lost up to 1.7x against Open3D where a third or half of the labels were wrong)
     top_classes : classes per source point that get a correspondence in Semantic-ICP
     min_inliers : fewer correspondences than this -> converged=False
     covariance : "sandwich" (cluster-robust, calibrated), "hessian" (raw inverse Hessian)
@@ -100,6 +107,7 @@ class RegistrationConfig:
     optimizer: str = "gn"
     tolerance: float = 1e-4
     semantic_weight: str = "outside"
+    semantic_estep: str = "posterior"
     top_classes: int = 2
     min_inliers: int = 12
     covariance: str = "sandwich"
@@ -122,6 +130,9 @@ class RegistrationConfig:
         if self.semantic_weight not in ("inside", "outside"):
             raise EstimationError(
                 f"semantic_weight must be 'inside' or 'outside', got {self.semantic_weight!r}")
+        if self.semantic_estep not in ("posterior", "weight"):
+            raise EstimationError(f"semantic_estep must be 'posterior' or 'weight', "
+                                  f"got {self.semantic_estep!r}")
         if self.covariance not in ("sandwich", "hessian"):
             raise EstimationError("covariance must be 'sandwich' or 'hessian'")
 
@@ -236,6 +247,7 @@ class Registration:
         self._index: SemanticIndex | None = None
         self._block: float | None = None
         self._cache: NeighbourCache | None = None
+        self._sigma: float | None = None  # Semantic-ICP's EM residual sigma, reset by run()
 
     @staticmethod
     def _probs(probs: np.ndarray, n: int, what: str) -> np.ndarray:
@@ -291,18 +303,13 @@ class Registration:
         if rows is not None:
             moved = transform_points(T, self.source[rows])
             if self.semantic:
-                corr = semantic_correspondences(moved, self.source_probs[rows],
-                                                self.semantic_index, d_max,
-                                                residual_sigma=max(d_max, 1e-6),
-                                                top_classes=self.config.top_classes)
+                corr = self._semantic(moved, self.source_probs[rows], d_max)
             else:
                 corr = nearest_correspondences(moved, self.target_tree, d_max)
             return replace(corr, source_idx=rows[corr.source_idx])
         moved = transform_points(T, self.source)
         if self.semantic:
-            return semantic_correspondences(moved, self.source_probs, self.semantic_index, d_max,
-                                            residual_sigma=max(d_max, 1e-6),
-                                            top_classes=self.config.top_classes)
+            return self._semantic(moved, self.source_probs, d_max)
         cache = None
         if self.config.cached_neighbours and d_max <= self.config.max_correspondence_distance:
             # annealed: the source now moves little per iteration (see NeighbourCache)
@@ -311,6 +318,22 @@ class Registration:
                                              self.config.cached_neighbours)
             cache = self._cache
         return nearest_correspondences(moved, self.target_tree, d_max, cache)
+
+    def _semantic(self, moved: np.ndarray, probs: np.ndarray, d_max: float) -> Correspondences:
+        """Return Semantic-ICP's candidates and E-step weights (and update the EM sigma)."""
+        cfg = self.config
+        posterior = cfg.semantic_estep == "posterior"
+        sigma = d_max if self._sigma is None or not posterior else min(self._sigma, d_max)
+        corr = semantic_correspondences(
+            moved, probs, self.semantic_index, d_max, residual_sigma=max(sigma, 1e-6),
+            top_classes=cfg.top_classes, target_tree=self.target_tree if posterior else None,
+            posterior=posterior)
+        if posterior and len(corr):
+            # M-step of the isotropic residual variance: sigma^2 = sum w d^2 / (3 sum w)
+            w = corr.weights
+            self._sigma = float(max(np.sqrt(np.sum(w * corr.distances ** 2) / (3 * np.sum(w))),
+                                    1e-4))
+        return corr
 
     def _weights(self, e: np.ndarray, omega: np.ndarray) -> np.ndarray:
         alpha = self.config.cauchy_alpha
@@ -341,6 +364,7 @@ class Registration:
         cfg = self.config
         start = time.perf_counter()
         T = _as_transform(init)
+        self._sigma = None
         if len(self.source) < cfg.min_inliers or len(self.target) < cfg.min_inliers:
             return self._failed(T, f"too few points: source {len(self.source)}, target "
                                    f"{len(self.target)} (need {cfg.min_inliers})", start)
