@@ -75,15 +75,24 @@ def _stages(d0: float, schedule: str) -> tuple[float, ...]:
     return (d0, D_FINAL) if schedule == "two-stage" else (d0,)
 
 
-def run_ours(src, tgt, init, stages, semantic):
+def register_ours(src, tgt, init, stages, semantic=False, **options):
+    """Return (RegistrationResult, seconds) of ours with the peers' schedule ``stages``.
+
+    ``options`` are further :class:`RegistrationConfig` fields (defaults otherwise).
+    """
     cfg = RegistrationConfig(max_correspondence_distance=stages[-1],
                              initial_correspondence_distance=stages[0],
-                             decay=stages[-1] / stages[0], anneal="convergence")
+                             decay=stages[-1] / stages[0], anneal="convergence", **options)
     t0 = time.perf_counter()
     reg = Registration(src.points, tgt.points, cfg, src.probs if semantic else None,
                        tgt.probs if semantic else None)
     result = reg.run(init)
-    return result.T, time.perf_counter() - t0
+    return result, time.perf_counter() - t0
+
+
+def run_ours(src, tgt, init, stages, semantic, **options):
+    result, seconds = register_ours(src, tgt, init, stages, semantic, **options)
+    return result.T, seconds
 
 
 def run_open3d(src, tgt, init, stages, cauchy=1.0):
@@ -121,6 +130,9 @@ def run_small_gicp(src, tgt, init, stages):
 METHODS = {
     "gicp-se3": lambda s, t, i, d: run_ours(s, t, i, d, False),
     "semantic-icp": lambda s, t, i, d: run_ours(s, t, i, d, True),
+    # the E-step as printed (unnormalised scores, class candidates only, sigma = d_max)
+    "semantic-icp-weight": lambda s, t, i, d: run_ours(s, t, i, d, True,
+                                                       semantic_estep="weight"),
     "open3d-gicp": run_open3d,
     "open3d-gicp-c2": lambda s, t, i, d: run_open3d(s, t, i, d, cauchy=2.0),
     "small_gicp": run_small_gicp,
@@ -182,7 +194,9 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", default=None, help="comma-separated source sizes")
     parser.add_argument("--accuracies", default="1.0,0.9,0.7,0.5")
     parser.add_argument("--views", default=",".join(VIEWPOINTS))
-    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--methods", default=",".join(m for m in METHODS
+                                                      if m != "semantic-icp-weight"),
+                        help=f"comma-separated, of {', '.join(METHODS)}")
     parser.add_argument("--schedule", choices=("two-stage", "single"), default="two-stage",
                         help="correspondence distances given to every method (two-stage)")
     parser.add_argument("--json", metavar="PATH", help="also write every trial's numbers")
@@ -216,7 +230,8 @@ def main(argv=None) -> int:
     load_start = os.getloadavg()
     rows = defaultdict(list)  # (method, acc, offset, size) -> [(d, t_err, r_err, time)]
     warm = False
-    geometric = [m for m in methods if m != "semantic-icp"]
+    semantic_methods = [m for m in methods if m.startswith("semantic-icp")]
+    geometric = [m for m in methods if m not in semantic_methods]
     for seed in seeds:  # independent rooms: depth noise, labels, ground truth, books
         room = build_room(RoomConfig(seed=seed))  # the meshes do not depend on the accuracy
         configs = [RoomConfig(seed=seed, label_accuracy=acc, robot_label_accuracy=acc)
@@ -246,9 +261,8 @@ def main(argv=None) -> int:
                             np.random.default_rng(1000 * trial + size), src.points.mean(axis=0),
                             metres, degrees)
                         runs = [(m, None, src, tgt) for m in geometric]
-                        if "semantic-icp" in methods:
-                            runs += [("semantic-icp", acc, s_, t_)
-                                     for acc, (s_, t_) in zip(accuracies, clouds)]
+                        runs += [(m, acc, s_, t_) for m in semantic_methods
+                                 for acc, (s_, t_) in zip(accuracies, clouds)]
                         for method, acc, s_, t_ in runs:
                             T, seconds = methods[method](s_, t_, init, stages)
                             err = pose_error(T, T_gt)

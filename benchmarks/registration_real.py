@@ -85,7 +85,6 @@ import bz2
 import json
 import os
 import sys
-import time
 from collections import defaultdict
 from dataclasses import dataclass
 from pathlib import Path
@@ -95,10 +94,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.registration import run_open3d, run_small_gicp  # noqa: E402
+from benchmarks.registration import (  # noqa: E402
+    register_ours,
+    run_open3d,
+    run_small_gicp,
+)
 from estimation.covariance import chi2_bounds, nees  # noqa: E402
 from estimation.fileio import atomic_write  # noqa: E402
-from estimation.registration import Registration, RegistrationConfig, pose_error  # noqa: E402
+from estimation.registration import pose_error  # noqa: E402
 from estimation.registration.metrics import offset_about_centroid  # noqa: E402
 
 REFERENCE = "open3d-gicp"
@@ -129,17 +132,9 @@ class Setting:
 
 
 def run_ours(src, tgt, init, stages):
-    """Return (result, seconds) of GICP-SE(3) with the same schedule as the peers.
-
-    Same configuration as benchmarks/registration.py's ``run_ours`` (geometry only), but
-    keeps the whole result for the NEES of the reported covariance.
-    """
-    cfg = RegistrationConfig(max_correspondence_distance=stages[-1],
-                             initial_correspondence_distance=stages[0],
-                             decay=stages[-1] / stages[0], anneal="convergence")
-    t0 = time.perf_counter()
-    result = Registration(src.points, tgt.points, cfg).run(init)
-    return result, time.perf_counter() - t0
+    """Return (result, seconds) of GICP-SE(3) with the peers' schedule (the whole result is
+    kept for the NEES of the reported covariance)."""
+    return register_ours(src, tgt, init, stages)
 
 
 METHODS = {

@@ -398,12 +398,11 @@ def _index(points, labels, c=3, acc=0.9):
 def test_posterior_estep_normalises_per_source_point():
     # target: a class-0 point at the origin, a class-1 point 10 cm away, a class-0 point far off
     index = _index([[0, 0, 0], [0.1, 0, 0], [5, 0, 0]], [0, 1, 0])
-    tree = cKDTree(index.points)
     # source 0 sits on target 0 with the right label; source 1 sits on target 0 but is labelled 1
     moved = np.array([[0.005, 0, 0], [0.0, 0.005, 0]])
     probs = one_hot(np.array([0, 1]), 3, 0.9)
     post = semantic_correspondences(moved, probs, index, 0.3, residual_sigma=0.02,
-                                    target_tree=tree, posterior=True)
+                                    nearest=cKDTree(index.points).query(moved), posterior=True)
     sums = np.bincount(post.source_idx, post.weights, minlength=2)
     np.testing.assert_allclose(sums, 1.0, atol=1e-3)  # less the dropped (< min_weight) ones
     # the nearest neighbour of source 0 is also its class candidate: counted once

@@ -9,10 +9,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_registration import make_pair
+from test_registration import make_pair, one_hot
 
 from estimation.covariance import check_consistency, nees
-from estimation.registration import RegistrationConfig, pose_error, register
+from estimation.registration import RegistrationConfig, pose_error, register, semantic_icp
+from perception.simulation.room import noisy_labels
 
 N_TRIALS = 30
 
@@ -52,11 +53,6 @@ def test_raw_inverse_hessian_is_not_consistent(sigma):
 def test_semantic_icp_covariance_is_consistent(sigma):
     # 90 % label accuracy on both clouds (labels from their own random stream), the default
     # posterior E-step; measured mean NEES 6.05 (2 mm) and 6.02 (1 cm)
-    from perception.simulation.room import noisy_labels
-    from test_registration import one_hot
-
-    from estimation.registration import semantic_icp
-
     errors, covs = [], []
     for seed in range(N_TRIALS):
         source, labels_s, target, labels_t, T_gt = make_pair(1000 + seed, 2000, sigma)

@@ -205,7 +205,7 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                              residual_sigma: float, top_classes: int = 2,
                              min_weight: float = 1e-3,
                              min_class_prob: float = 0.1,
-                             target_tree: cKDTree | None = None,
+                             nearest: tuple[np.ndarray, np.ndarray] | None = None,
                              posterior: bool = False) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
@@ -216,7 +216,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         omega_kc  propto  p(r_kc | i_kc; T_old) * p(c | x_s) * p(c | x_t)
 
     with an isotropic Gaussian residual likelihood of standard deviation ``residual_sigma``.
-    With ``target_tree`` (the tree over all target points) the geometric nearest neighbour j
+    With ``nearest`` = (distance, index) of every source point's geometric nearest neighbour
+    among all target points (distance inf where none lies within ``d_max``), that neighbour j
     is a candidate too, scored with the label agreement summed over the classes, eq. (5)'s
     ``sum_c p(c | x_s) p(c | x_t,j)``; a class candidate that is that same point is not
     counted twice.
@@ -241,17 +242,16 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         order[:, rank] = masked.argmax(axis=1)
         masked[np.arange(n), order[:, rank]] = -np.inf
     src_rows, tgt_rows, dists, prior = [], [], [], []
-    nearest = np.full(n, -1, dtype=np.int64)
-    if target_tree is not None:
-        dist, j = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max,
-                                    workers=_workers(n))
-        ok = np.isfinite(dist)
+    nn = np.full(n, -1, dtype=np.int64)
+    if nearest is not None:
+        dist, j = nearest
+        ok = dist <= d_max
         rows = np.nonzero(ok)[0]
-        nearest[rows] = j[ok]
+        nn[rows] = j[ok]
         src_rows.append(rows)
-        tgt_rows.append(nearest[rows])
+        tgt_rows.append(nn[rows])
         dists.append(dist[ok])
-        prior.append(np.einsum("ij,ij->i", source_probs[rows], index.probs[nearest[rows]]))
+        prior.append(np.einsum("ij,ij->i", source_probs[rows], index.probs[nn[rows]]))
     for rank in range(top):
         cls_of_point = order[:, rank]
         searched = np.ones(n, bool) if rank == 0 else \
@@ -264,7 +264,7 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                                  workers=_workers(len(rows)))
             ok = np.isfinite(dist)
             tgt = index.members[c][j[ok]]
-            fresh = tgt != nearest[rows[ok]]  # the nearest neighbour already counts class c
+            fresh = tgt != nn[rows[ok]]  # the nearest neighbour already counts class c
             if not fresh.any():
                 continue
             rows, tgt, dist = rows[ok][fresh], tgt[fresh], dist[ok][fresh]

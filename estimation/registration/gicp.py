@@ -25,6 +25,7 @@ from .correspondences import (
     LazyCovariances,
     NeighbourCache,
     SemanticIndex,
+    _workers,
     nearest_correspondences,
     point_covariances,
     semantic_correspondences,
@@ -303,13 +304,11 @@ class Registration:
         if rows is not None:
             moved = transform_points(T, self.source[rows])
             if self.semantic:
-                corr = self._semantic(moved, self.source_probs[rows], d_max)
+                corr = self._semantic(moved, self.source_probs[rows], d_max, None)
             else:
                 corr = nearest_correspondences(moved, self.target_tree, d_max)
             return replace(corr, source_idx=rows[corr.source_idx])
         moved = transform_points(T, self.source)
-        if self.semantic:
-            return self._semantic(moved, self.source_probs, d_max)
         cache = None
         if self.config.cached_neighbours and d_max <= self.config.max_correspondence_distance:
             # annealed: the source now moves little per iteration (see NeighbourCache)
@@ -317,17 +316,23 @@ class Registration:
                 self._cache = NeighbourCache(self.target_tree, d_max,
                                              self.config.cached_neighbours)
             cache = self._cache
+        if self.semantic:
+            return self._semantic(moved, self.source_probs, d_max, cache)
         return nearest_correspondences(moved, self.target_tree, d_max, cache)
 
-    def _semantic(self, moved: np.ndarray, probs: np.ndarray, d_max: float) -> Correspondences:
+    def _semantic(self, moved: np.ndarray, probs: np.ndarray, d_max: float,
+                  cache: NeighbourCache | None) -> Correspondences:
         """Return Semantic-ICP's candidates and E-step weights (and update the EM sigma)."""
         cfg = self.config
         posterior = cfg.semantic_estep == "posterior"
         sigma = d_max if self._sigma is None or not posterior else min(self._sigma, d_max)
+        nearest = None
+        if posterior:
+            nearest = cache.query(moved) if cache is not None else self.target_tree.query(
+                moved, k=1, distance_upper_bound=d_max, workers=_workers(len(moved)))
         corr = semantic_correspondences(
             moved, probs, self.semantic_index, d_max, residual_sigma=max(sigma, 1e-6),
-            top_classes=cfg.top_classes, target_tree=self.target_tree if posterior else None,
-            posterior=posterior)
+            top_classes=cfg.top_classes, nearest=nearest, posterior=posterior)
         if posterior and len(corr):
             # M-step of the isotropic residual variance: sigma^2 = sum w d^2 / (3 sum w)
             w = corr.weights
