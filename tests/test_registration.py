@@ -419,6 +419,8 @@ def test_posterior_estep_normalises_per_source_point():
 def test_bad_semantic_estep_is_rejected():
     with pytest.raises(EstimationError, match="semantic_estep"):
         RegistrationConfig(semantic_estep="bayes")
+    with pytest.raises(EstimationError, match="factors"):
+        RegistrationConfig(factors="per-point")
 
 
 @pytest.mark.parametrize("estep", ["posterior", "weight"])
@@ -433,3 +435,41 @@ def test_semantic_icp_with_half_the_labels_wrong_still_registers(estep):
     assert result.converged, result.reason
     err = pose_error(result.T, T_gt)
     assert err.t_err_m < 5e-3 and err.r_err_rad < 2e-3
+
+
+# -- GTSAM's own robust Cauchy model gives the same estimate as the batched IRLS factor ----------
+@pytest.mark.parametrize("semantic_weight", ["outside", "inside"])
+def test_robust_noise_model_step_equals_batched_step(rng, semantic_weight):
+    from estimation.registration.factors import robust_factors
+
+    m, alpha = 300, 2.0
+    src = rng.normal(size=(m, 3))
+    T = random_pose(rng, 0.1, 0.2)
+    tgt = src @ T[:3, :3].T + T[:3, 3] + rng.normal(0, 0.05, (m, 3))
+    tgt[:30] += rng.normal(0, 1.0, (30, 3))  # outliers: the kernel matters
+    covs = point_covariances(rng.normal(size=(m, 3)), 10)
+    Ut = whitening(covs, covs[::-1], np.eye(3))
+    omega = rng.uniform(0.05, 1.0, m)
+    e = gicp_terms(np.eye(4), src, tgt, Ut, jacobians=False).mahalanobis
+    reg = Registration(src, tgt, RegistrationConfig(cauchy_alpha=alpha,
+                                                    semantic_weight=semantic_weight),
+                       np.ones((m, 2)) * 0.5, np.ones((m, 2)) * 0.5)
+    key = gtsam.symbol("t", 0)
+    batched = solve_weighted(np.eye(4), BatchedGicpFactor(key, src, tgt, Ut,
+                                                          reg._weights(e, omega)))
+    robust = solve_weighted(np.eye(4), robust_factors(key, src, tgt, Ut, omega, alpha,
+                                                      semantic_weight), key=key)
+    np.testing.assert_allclose(robust, batched, atol=1e-9)
+    assert pose_error(batched, np.eye(4)).d_se3 > 0.05  # the step did move
+
+
+@pytest.mark.parametrize("semantic", [False, True])
+def test_registration_with_gtsam_robust_factors_matches_batched(semantic):
+    source, labels_s, target, labels_t, T_gt = make_pair(8, 600, 0.005)
+    probs = (one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9)) if semantic else (None,) * 2
+    results = [Registration(source, target, RegistrationConfig(factors=f), *probs).run()
+               for f in ("batched", "robust")]
+    assert results[0].converged and results[1].converged
+    assert results[0].iterations == results[1].iterations
+    np.testing.assert_allclose(results[1].T, results[0].T, atol=1e-8)
+    assert pose_error(results[1].T, T_gt).t_err_m < 0.01
