@@ -473,3 +473,16 @@ def test_registration_with_gtsam_robust_factors_matches_batched(semantic):
     assert results[0].iterations == results[1].iterations
     np.testing.assert_allclose(results[1].T, results[0].T, atol=1e-8)
     assert pose_error(results[1].T, T_gt).t_err_m < 0.01
+
+
+def test_semantic_candidate_caches_keep_the_answer():
+    # the per-class NeighbourCaches (and the geometric one) are exact: same path, same pose
+    source, labels_s, target, labels_t, T_gt = make_pair(9, 3000, 0.005)
+    probs = one_hot(labels_s, acc=0.8), one_hot(labels_t, acc=0.8)
+    runs = [Registration(source, target, RegistrationConfig(
+        cached_neighbours=k, initial_correspondence_distance=0.6), *probs).run()
+        for k in (8, 0)]
+    assert runs[0].iterations == runs[1].iterations
+    np.testing.assert_array_equal(runs[0].cost_log, runs[1].cost_log)
+    np.testing.assert_allclose(runs[0].T, runs[1].T, atol=1e-12)
+    assert pose_error(runs[0].T, T_gt).t_err_m < 5e-3

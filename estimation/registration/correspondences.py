@@ -206,7 +206,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                              min_weight: float = 1e-3,
                              min_class_prob: float = 0.1,
                              nearest: tuple[np.ndarray, np.ndarray] | None = None,
-                             posterior: bool = False) -> Correspondences:
+                             posterior: bool = False,
+                             caches: dict | None = None) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
     Candidates: for each source point and each of its ``top_classes`` most probable classes c,
@@ -230,6 +231,10 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
 
     Candidates with omega below ``min_weight`` are dropped (after normalising); classes after
     the most probable one are only searched where their probability reaches ``min_class_prob``.
+
+    ``caches``: a dict (kept by the caller for one ``d_max`` and one set of source points)
+    in which a :class:`NeighbourCache` per class tree is kept, so that repeated calls while
+    the source moves little return the same candidates from cached ones.
     """
     n, c_src = source_probs.shape
     if c_src != index.n_classes:
@@ -260,8 +265,13 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
             rows = np.nonzero((cls_of_point == c) & searched)[0]
             if len(rows) == 0:
                 continue
-            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
-                                 workers=_workers(len(rows)))
+            if caches is not None and tree.n >= 2:
+                if (rank, c) not in caches:
+                    caches[(rank, c)] = NeighbourCache(tree, d_max)
+                dist, j = caches[(rank, c)].query(source_in_target[rows])
+            else:
+                dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
+                                     workers=_workers(len(rows)))
             ok = np.isfinite(dist)
             tgt = index.members[c][j[ok]]
             fresh = tgt != nn[rows[ok]]  # the nearest neighbour already counts class c
