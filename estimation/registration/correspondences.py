@@ -72,6 +72,85 @@ class LazyCovariances:
         return self[np.arange(len(self.points))]
 
 
+def local_means(points: np.ndarray, tree: cKDTree, radius: float, min_points: int = 6,
+                rows: np.ndarray | None = None, k_max: int = 48) -> np.ndarray:
+    """Return each point's local surface position: the mean of its neighbours within ``radius``.
+
+    The mean runs over the ``k_max`` nearest points within ``radius`` (the point itself
+    included). Where fewer than ``min_points`` lie there, the sample itself is returned: a mean
+    of a few scattered samples says nothing about the surface. On a voxel-centre cloud (an
+    octree map) a radius of sqrt(3) times the resolution averages the occupied voxels of the
+    3x3x3 block around each centre, which removes the +-half-voxel quantisation that
+    nearest-neighbour matching otherwise turns into a pose bias (docs/registration.md).
+    """
+    points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+    query = points if rows is None else points[rows]
+    k = int(min(k_max, len(points)))
+    dist, idx = tree.query(query, k=k, distance_upper_bound=radius,
+                           workers=_workers(len(query), k))
+    dist, idx = dist.reshape(len(query), k), idx.reshape(len(query), k)
+    inside = np.isfinite(dist)
+    counts = inside.sum(axis=1)
+    idx = np.where(inside, idx, 0)
+    means = np.einsum("nk,nki->ni", inside.astype(float), points[idx]) \
+        / np.maximum(counts, 1)[:, None]
+    few = counts < min_points
+    means[few] = query[few]
+    return means
+
+
+def lattice_pitch(points: np.ndarray, sample: int = 4000, tol: float = 1e-3,
+                  share: float = 0.9) -> float | None:
+    """Return the pitch (m) of the cubic lattice the points sit on, or None if they do not.
+
+    Voxel-centre clouds (an octree map's occupied voxels) have their coordinates on
+    ``offset + k * pitch``. The candidate pitch is the median non-zero per-axis difference
+    between sampled nearest neighbours (adjacent voxels on a dense map); it is accepted when
+    at least ``share`` of the sampled points lie on one lattice of that pitch to ``tol``
+    pitches (float32 files included; pruned octree nodes, whose centres sit half a voxel off,
+    may make up the rest). A measured cloud, a voxel filter that averages points, or a thin
+    subsample whose neighbours are several voxels apart gives None.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    sel = points[:: max(1, len(points) // sample)]
+    if len(sel) < 10:
+        return None
+    _, j = cKDTree(sel).query(sel, k=2)
+    diffs = np.abs(sel - sel[j[:, 1]]).ravel()
+    extent = float(np.ptp(sel, axis=0).max())
+    diffs = diffs[diffs > 1e-9 * max(extent, 1.0)]
+    if len(diffs) == 0:
+        return None
+    pitch = float(np.median(diffs))
+    phase = sel / pitch
+    best = 0.0
+    for ref in phase[:8]:  # a reference point on the main lattice (not a pruned node)
+        off = np.abs((phase - ref + 0.5) % 1.0 - 0.5)
+        best = max(best, float(np.mean(np.all(off < tol, axis=1))))
+    return pitch if best >= share else None
+
+
+class LazyMeans:
+    """Local surface positions (:func:`local_means`) computed on first use, row by row, cached."""
+
+    def __init__(self, points: np.ndarray, tree: cKDTree, radius: float, min_points: int):
+        self.points = points
+        self.tree = tree
+        self.radius = radius
+        self.min_points = min_points
+        self.values = np.empty((len(points), 3))
+        self.done = np.zeros(len(points), bool)
+
+    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+        missing = idx[~self.done[idx]]
+        if len(missing):
+            rows = np.unique(missing)
+            self.values[rows] = local_means(self.points, self.tree, self.radius,
+                                            self.min_points, rows)
+            self.done[rows] = True
+        return self.values[idx]
+
+
 @dataclass(frozen=True)
 class Correspondences:
     """Matched index pairs with their E-step weights.
