@@ -54,6 +54,10 @@ def _common(parser, default_method: str) -> None:
     parser.add_argument("--alpha", type=float, default=2.0, help="Cauchy kernel alpha (2.0)")
     parser.add_argument("--semantic-weight", choices=("inside", "outside"), default="outside",
                         help="omega inside the Cauchy kernel (eq. (7)) or outside (Parkison)")
+    parser.add_argument("--surface-radius", default="auto", metavar="auto|none|R",
+                        help="measure residuals between local surface means within R m; "
+                        "auto: sqrt(3) x the voxel pitch when a cloud is a voxel-centre map "
+                        "(default), none: between the samples")
     parser.add_argument("--max-iterations", type=int, default=60,
                         help="outer iterations at the final correspondence distance (60)")
     parser.add_argument("--estimator", metavar="NAME",
@@ -93,7 +97,8 @@ def _register(args, source, target, flip=None) -> dict:
     config = RegistrationConfig(
         max_correspondence_distance=args.max_corr,
         initial_correspondence_distance=args.initial_corr, cauchy_alpha=args.alpha,
-        semantic_weight=args.semantic_weight, max_iterations=args.max_iterations)
+        semantic_weight=args.semantic_weight, max_iterations=args.max_iterations,
+        surface_radius=_surface_radius(args.surface_radius))
     init = read_transform(args.init) if args.init else None
     semantic = args.method == "semantic"
     if getattr(args, "estimator", None):
@@ -189,3 +194,19 @@ def run_calibrate(args) -> int:
         write_pose_graph(args.graph, pg)
     print(_summary(out))
     return 0 if out["converged"] else 1
+
+
+def _surface_radius(text: str) -> float | str | None:
+    """Parse --surface-radius: "auto", "none" or a positive number of metres."""
+    from estimation.errors import OctofactorError
+
+    if text in ("auto", "none"):
+        return None if text == "none" else "auto"
+    try:
+        radius = float(text)
+    except ValueError:
+        radius = float("nan")
+    if not radius > 0:
+        raise OctofactorError(f"--surface-radius must be auto, none or a positive number of "
+                              f"metres, got {text!r}")
+    return radius

@@ -28,7 +28,8 @@ def test_register_writes_result_with_errors(tmp_path):
         out = tmp_path / f"{method}.json"
         code = main(["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.ply"),
                      "--method", method, "--init", str(tmp_path / "init.txt"),
-                     "--gt", str(tmp_path / "gt.txt"), "--max-corr", "0.3", "-o", str(out)])
+                     "--gt", str(tmp_path / "gt.txt"), "--max-corr", "0.3",
+                     "--surface-radius", "none" if method == "gicp" else "auto", "-o", str(out)])
         data = json.loads(out.read_text())
         assert code == 0 and data["converged"]
         assert data["method"] == method
@@ -47,6 +48,11 @@ def test_register_bad_input_exits_2(tmp_path, capsys):
     code = main(["register", str(tmp_path / "missing.ply"), str(tmp_path / "tgt.ply"),
                  "-o", str(tmp_path / "r.json")])
     assert code == 2
+    assert not (tmp_path / "r.json").exists()
+    for bad in ("-0.1", "wide"):
+        code = main(["register", str(tmp_path / "src.ply"), str(tmp_path / "tgt.ply"),
+                     "--surface-radius", bad, "-o", str(tmp_path / "r.json")])
+        assert code == 2 and "--surface-radius" in capsys.readouterr().err
     assert not (tmp_path / "r.json").exists()
 
 
