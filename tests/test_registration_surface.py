@@ -7,14 +7,19 @@ from scipy.spatial import cKDTree
 
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, pose_error
-from estimation.registration.correspondences import LazyMeans, local_means
+from estimation.registration.correspondences import (
+    LazyCovariances,
+    local_means,
+    neighbourhoods,
+    point_covariances,
+)
 
 
 def test_local_means_equal_brute_force(rng):
     points = rng.uniform(0, 1, (400, 3)) * [1.0, 1.0, 0.1]
     radius, min_points = 0.15, 6
     tree = cKDTree(points)
-    got = local_means(points, tree, radius, min_points)
+    got = local_means(points, tree, radius, min_points, k_max=len(points))
     dist = np.linalg.norm(points[:, None] - points[None], axis=2)
     for i in range(len(points)):
         inside = dist[i] <= radius
@@ -22,10 +27,17 @@ def test_local_means_equal_brute_force(rng):
         np.testing.assert_allclose(got[i], want, atol=1e-12)
     # rows and the lazy cache give the same values
     rows = rng.choice(len(points), 50, replace=False)
-    np.testing.assert_allclose(local_means(points, tree, radius, min_points, rows), got[rows])
-    lazy = LazyMeans(points, tree, radius, min_points)
-    np.testing.assert_allclose(lazy[rows], got[rows])
-    np.testing.assert_allclose(lazy[np.arange(len(points))], got)
+    np.testing.assert_allclose(local_means(points, tree, radius, min_points, rows,
+                                           k_max=len(points)), got[rows])
+    # one shared query: the covariances are those of point_covariances, the means those of
+    # local_means over the k_max nearest; lazily row by row as well
+    covs, means = neighbourhoods(points, 20, 1e-3, tree, radius=radius, min_points=min_points)
+    np.testing.assert_allclose(covs, point_covariances(points, 20, 1e-3, tree))
+    np.testing.assert_allclose(means, local_means(points, tree, radius, min_points))
+    lazy = LazyCovariances(points, tree, 20, 1e-3, radius, min_points)
+    np.testing.assert_allclose(lazy.means(rows), means[rows])
+    np.testing.assert_allclose(lazy[rows], covs[rows])
+    np.testing.assert_allclose(lazy.means(np.arange(len(points))), means)
 
 
 def test_sparse_clouds_are_unchanged(rng):

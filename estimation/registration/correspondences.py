@@ -29,43 +29,87 @@ def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
     each point is modelled as a small disc of its local surface, so the residual along the
     surface normal dominates. With fewer than 3 points the identity is returned.
     """
+    return neighbourhoods(points, k, epsilon, tree, rows)[0]
+
+
+def neighbourhoods(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
+                   tree: cKDTree | None = None, rows: np.ndarray | None = None,
+                   radius: float | None = None, min_points: int = 6,
+                   k_max: int = 27) -> tuple[np.ndarray, np.ndarray | None]:
+    """Return (covariances (M, 3, 3), local means (M, 3) or None) from ONE k-NN query.
+
+    Covariances as :func:`point_covariances`; with ``radius`` also :func:`local_means` (the
+    mean of the ``k_max`` nearest points within ``radius``), which share the query.
+    """
     points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     n = len(points)
-    m = n if rows is None else len(rows)
-    if n < 3:
-        return np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
-    k = int(min(max(k, 3), n))
-    tree = cKDTree(points) if tree is None else tree
     query = points if rows is None else points[rows]
-    _, idx = tree.query(query, k=k, workers=_workers(len(query), k))
-    return _kernels.neighbour_covariances(points, np.ascontiguousarray(idx, dtype=np.int64),
+    if n < 3:
+        covs = np.broadcast_to(np.eye(3), (len(query), 3, 3)).copy()
+        return covs, (None if radius is None else query.copy())
+    k_cov = int(min(max(k, 3), n))
+    k_query = k_cov if radius is None else int(min(max(k_cov, k_max), n))
+    tree = cKDTree(points) if tree is None else tree
+    dist, idx = tree.query(query, k=k_query, workers=_workers(len(query), k_query))
+    idx = np.ascontiguousarray(idx, dtype=np.int64)
+    covs = _kernels.neighbour_covariances(points, np.ascontiguousarray(idx[:, :k_cov]),
                                           float(epsilon))
+    if radius is None:
+        return covs, None
+    return covs, _means_within(points, query, dist[:, :k_max], idx[:, :k_max], radius,
+                               min_points)
+
+
+def _means_within(points, query, dist, idx, radius, min_points) -> np.ndarray:
+    inside = dist <= radius
+    counts = inside.sum(axis=1)
+    means = np.einsum("nk,nki->ni", inside.astype(float), points[idx]) \
+        / np.maximum(counts, 1)[:, None]
+    few = counts < min_points
+    means[few] = query[few]
+    return means
 
 
 class LazyCovariances:
-    """Per-point GICP covariances computed on first use, row by row, then cached.
+    """Per-point GICP covariances (and local means) computed on first use, row by row, cached.
 
     ICP only ever touches the target points near the source: in the room benchmark (10k
     source / 30k target points) 80 % of the target covariances are never needed, and their
-    k-NN queries were the largest single cost of a registration.
+    k-NN queries were the largest single cost of a registration. With ``radius`` the local
+    means (:func:`local_means`) of the same rows come from the same query.
     """
 
-    def __init__(self, points: np.ndarray, tree: cKDTree, k: int, epsilon: float):
+    def __init__(self, points: np.ndarray, tree: cKDTree, k: int, epsilon: float,
+                 radius: float | None = None, min_points: int = 6):
         self.points = points
         self.tree = tree
         self.k = k
         self.epsilon = epsilon
+        self.radius = radius
+        self.min_points = min_points
         self.values = np.empty((len(points), 3, 3))
+        self.mean_values = None if radius is None else np.empty((len(points), 3))
         self.done = np.zeros(len(points), bool)
 
-    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+    def _fill(self, idx: np.ndarray) -> None:
         missing = idx[~self.done[idx]]
         if len(missing):
             rows = np.unique(missing)
-            self.values[rows] = point_covariances(self.points, self.k, self.epsilon,
-                                                  self.tree, rows)
+            covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree, rows,
+                                         self.radius, self.min_points)
+            self.values[rows] = covs
+            if means is not None:
+                self.mean_values[rows] = means
             self.done[rows] = True
+
+    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
+        self._fill(idx)
         return self.values[idx]
+
+    def means(self, idx: np.ndarray) -> np.ndarray:
+        """Return the local means of rows ``idx`` (requires ``radius``)."""
+        self._fill(idx)
+        return self.mean_values[idx]
 
     def all(self) -> np.ndarray:
         """Return every covariance (computing the missing ones)."""
@@ -73,30 +117,23 @@ class LazyCovariances:
 
 
 def local_means(points: np.ndarray, tree: cKDTree, radius: float, min_points: int = 6,
-                rows: np.ndarray | None = None, k_max: int = 48) -> np.ndarray:
+                rows: np.ndarray | None = None, k_max: int = 27) -> np.ndarray:
     """Return each point's local surface position: the mean of its neighbours within ``radius``.
 
     The mean runs over the ``k_max`` nearest points within ``radius`` (the point itself
-    included). Where fewer than ``min_points`` lie there, the sample itself is returned: a mean
-    of a few scattered samples says nothing about the surface. On a voxel-centre cloud (an
-    octree map) a radius of sqrt(3) times the resolution averages the occupied voxels of the
-    3x3x3 block around each centre, which removes the +-half-voxel quantisation that
-    nearest-neighbour matching otherwise turns into a pose bias (docs/registration.md).
+    included; 27 = a whole 3x3x3 voxel block). Where fewer than ``min_points`` lie there, the
+    sample itself is returned: a mean of a few scattered samples says nothing about the
+    surface. On a voxel-centre cloud (an octree map) a radius of sqrt(3) times the resolution
+    averages the occupied voxels of the 3x3x3 block around each centre, which removes the
+    +-half-voxel quantisation that nearest-neighbour matching otherwise turns into a pose bias
+    (docs/registration.md).
     """
     points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     query = points if rows is None else points[rows]
     k = int(min(k_max, len(points)))
-    dist, idx = tree.query(query, k=k, distance_upper_bound=radius,
-                           workers=_workers(len(query), k))
+    dist, idx = tree.query(query, k=k, workers=_workers(len(query), k))
     dist, idx = dist.reshape(len(query), k), idx.reshape(len(query), k)
-    inside = np.isfinite(dist)
-    counts = inside.sum(axis=1)
-    idx = np.where(inside, idx, 0)
-    means = np.einsum("nk,nki->ni", inside.astype(float), points[idx]) \
-        / np.maximum(counts, 1)[:, None]
-    few = counts < min_points
-    means[few] = query[few]
-    return means
+    return _means_within(points, query, dist, idx, radius, min_points)
 
 
 def lattice_pitch(points: np.ndarray, sample: int = 4000, tol: float = 1e-3,
@@ -128,27 +165,6 @@ def lattice_pitch(points: np.ndarray, sample: int = 4000, tol: float = 1e-3,
         off = np.abs((phase - ref + 0.5) % 1.0 - 0.5)
         best = max(best, float(np.mean(np.all(off < tol, axis=1))))
     return pitch if best >= share else None
-
-
-class LazyMeans:
-    """Local surface positions (:func:`local_means`) computed on first use, row by row, cached."""
-
-    def __init__(self, points: np.ndarray, tree: cKDTree, radius: float, min_points: int):
-        self.points = points
-        self.tree = tree
-        self.radius = radius
-        self.min_points = min_points
-        self.values = np.empty((len(points), 3))
-        self.done = np.zeros(len(points), bool)
-
-    def __getitem__(self, idx: np.ndarray) -> np.ndarray:
-        missing = idx[~self.done[idx]]
-        if len(missing):
-            rows = np.unique(missing)
-            self.values[rows] = local_means(self.points, self.tree, self.radius,
-                                            self.min_points, rows)
-            self.done[rows] = True
-        return self.values[idx]
 
 
 @dataclass(frozen=True)

@@ -23,14 +23,13 @@ from ..errors import EstimationError
 from .correspondences import (
     Correspondences,
     LazyCovariances,
-    LazyMeans,
     NeighbourCache,
     SemanticIndex,
     _workers,
     lattice_pitch,
     local_means,
     nearest_correspondences,
-    point_covariances,
+    neighbourhoods,
     semantic_correspondences,
     transform_points,
 )
@@ -279,7 +278,7 @@ class Registration:
         self._cache: NeighbourCache | None = None
         self._surface_radius: float | str | None = "unset"
         self._source_pos: np.ndarray | None = None
-        self._target_pos: LazyMeans | None = None
+        self._target_lazy: LazyCovariances | None = None
         self._class_cache: dict = {}
         self._class_cache_owner: NeighbourCache | None = None
         self._sigma: float | None = None  # Semantic-ICP's EM residual sigma, reset by run()
@@ -298,8 +297,10 @@ class Registration:
     @property
     def source_cov(self) -> np.ndarray:
         if self._source_cov is None:
-            self._source_cov = point_covariances(self.source, self.config.k_neighbours,
-                                                 self.config.epsilon)
+            # one neighbour query gives the covariances and, on a voxel lattice, the means
+            self._source_cov, self._source_pos = neighbourhoods(
+                self.source, self.config.k_neighbours, self.config.epsilon,
+                radius=self._means_radius, min_points=self.config.surface_min_points)
         return self._source_cov
 
     @property
@@ -312,24 +313,38 @@ class Registration:
     def target_cov(self) -> np.ndarray | LazyCovariances:
         """Target covariances, indexable by row arrays (computed on first use per row)."""
         if self._target_cov is None:
-            self._target_cov = LazyCovariances(self.target, self.target_tree,
-                                               self.config.k_neighbours, self.config.epsilon)
+            self._target_cov = self._target_stats
         return self._target_cov
+
+    @property
+    def _target_stats(self) -> LazyCovariances:
+        if self._target_lazy is None:
+            self._target_lazy = LazyCovariances(
+                self.target, self.target_tree, self.config.k_neighbours, self.config.epsilon,
+                self._means_radius, self.config.surface_min_points)
+        return self._target_lazy
+
+    @property
+    def _means_radius(self) -> float | None:
+        # the lattice's corner voxels lie exactly at sqrt(3) pitches: a hair more includes them
+        radius = self.surface_radius
+        return None if radius is None else radius * (1 + 1e-6)
 
     def matched_points(self, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
         """Return the (source, target) positions the residuals of ``corr`` are measured between.
 
         The samples themselves, or with ``surface_radius`` their local surface positions
-        (source: computed once; target: lazily, for the rows that get matched).
+        (source: computed once with its covariances; target: lazily, for the rows that get
+        matched, from the query of their covariances).
         """
-        radius = self.surface_radius
-        if radius is None:
+        if self.surface_radius is None:
             return self.source[corr.source_idx], self.target[corr.target_idx]
-        if self._source_pos is None:
-            k = self.config.surface_min_points
-            self._source_pos = local_means(self.source, cKDTree(self.source), radius, k)
-            self._target_pos = LazyMeans(self.target, self.target_tree, radius, k)
-        return self._source_pos[corr.source_idx], self._target_pos[corr.target_idx]
+        _ = self.source_cov
+        if self._source_pos is None:  # covariances were given: the means need a query
+            self._source_pos = local_means(self.source, cKDTree(self.source),
+                                           self._means_radius, self.config.surface_min_points)
+        return (self._source_pos[corr.source_idx],
+                self._target_stats.means(corr.target_idx))
 
     @property
     def surface_radius(self) -> float | None:
