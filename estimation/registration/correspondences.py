@@ -136,24 +136,26 @@ def local_means(points: np.ndarray, tree: cKDTree, radius: float, min_points: in
     return _means_within(points, query, dist, idx, radius, min_points)
 
 
-def lattice_pitch(points: np.ndarray, sample: int = 4000, tol: float = 1e-3,
-                  share: float = 0.9) -> float | None:
+def lattice_pitch(points: np.ndarray, tree: cKDTree | None = None, sample: int = 1000,
+                  tol: float = 1e-3, share: float = 0.9) -> float | None:
     """Return the pitch (m) of the cubic lattice the points sit on, or None if they do not.
 
     Voxel-centre clouds (an octree map's occupied voxels) have their coordinates on
     ``offset + k * pitch``. The candidate pitch is the median non-zero per-axis difference
-    between sampled nearest neighbours (adjacent voxels on a dense map); it is accepted when
+    between ``sample`` points and their nearest neighbours in the whole cloud (``tree``, built
+    if not given; adjacent voxels on a dense map); it is accepted when
     at least ``share`` of the sampled points lie on one lattice of that pitch to ``tol``
     pitches (float32 files included; pruned octree nodes, whose centres sit half a voxel off,
     may make up the rest). A measured cloud, a voxel filter that averages points, or a thin
     subsample whose neighbours are several voxels apart gives None.
     """
     points = np.asarray(points, dtype=float).reshape(-1, 3)
-    sel = points[:: max(1, len(points) // sample)]
-    if len(sel) < 10:
+    if len(points) < 10:
         return None
-    _, j = cKDTree(sel).query(sel, k=2)
-    diffs = np.abs(sel - sel[j[:, 1]]).ravel()
+    sel = points[:: max(1, len(points) // sample)]
+    tree = cKDTree(points) if tree is None else tree
+    _, j = tree.query(sel, k=2)
+    diffs = np.abs(sel - points[j[:, 1]]).ravel()
     extent = float(np.ptp(sel, axis=0).max())
     diffs = diffs[diffs > 1e-9 * max(extent, 1.0)]
     if len(diffs) == 0:

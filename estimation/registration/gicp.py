@@ -102,10 +102,12 @@ class RegistrationConfig:
         their local surface positions, the mean of each cloud's points within this radius
         (:func:`.correspondences.local_means`; correspondences are still searched among the
         samples); "auto" (default) = sqrt(3) x the pitch when either cloud sits on a voxel
-        lattice (:func:`.correspondences.lattice_pitch`: an octree map's voxel centres), else
-        None. Nearest neighbours on a dense grid of centres are off by up to half a voxel
-        along the normal, which put every method 3-6 cm off the ground truth at 50k points
-        in the room benchmark (about 1 cm with the means; docs/registration.md)
+        lattice (:func:`.correspondences.lattice_pitch`: an octree map's voxel centres) and
+        at least 10 % of either cloud's points have ``surface_min_points`` neighbours within
+        it (else every mean would fall back to its sample), else None. Nearest neighbours
+        on a dense grid of centres are off by up to half a voxel along the normal, which put
+        every method 3-6 cm off the ground truth at 50k points in the room benchmark (about
+        1 cm with the means; docs/registration.md)
     surface_min_points : fewer points than this within ``surface_radius`` -> the sample itself
         (sparse clouds are left unchanged)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
@@ -316,6 +318,13 @@ class Registration:
             self._target_cov = self._target_stats
         return self._target_cov
 
+    def _dense_share(self, points: np.ndarray, radius: float) -> float:
+        """Share of (sampled) points with ``surface_min_points`` neighbours within ``radius``."""
+        sample = points[:: max(1, len(points) // 500)]
+        tree = self.target_tree if points is self.target else cKDTree(points)
+        counts = tree.query_ball_point(sample, radius * (1 + 1e-6), return_length=True)
+        return float(np.mean(counts >= self.config.surface_min_points))
+
     @property
     def _target_stats(self) -> LazyCovariances:
         if self._target_lazy is None:
@@ -352,8 +361,12 @@ class Registration:
         if self._surface_radius == "unset":
             radius = self.config.surface_radius
             if radius == "auto":
-                pitch = lattice_pitch(self.target) or lattice_pitch(self.source)
+                pitch = lattice_pitch(self.target, self.target_tree) or lattice_pitch(
+                    self.source)
                 radius = None if pitch is None else float(np.sqrt(3.0) * pitch)
+                if radius is not None and not (self._dense_share(self.target, radius) >= 0.1
+                                               or self._dense_share(self.source, radius) >= 0.1):
+                    radius = None  # thin subsamples: (nearly) every mean would fall back
             self._surface_radius = radius
         return self._surface_radius
 
