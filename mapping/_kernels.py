@@ -525,7 +525,9 @@ def _mark_rays_grid(pts, ox, oy, oz, ok0, res, max_range, i0, pool, bcodes, coun
                 # mark the current cell (bit 0 = free; an occupied bit 1 is kept), then step.
                 # The mark is repeated in each of the four axis branches on purpose: choosing
                 # the axis first and marking once measured 5-10 % slower (CPU, one thread,
-                # scan.dat through this path at 0.1 and 0.05 m)
+                # scan.dat through this path at 0.1 and 0.05 m), and the find-or-add of the
+                # brick as an inline="always" helper returning (brick, count) 5x slower
+                # (scan.dat, 0.1 m, max range -1: 0.45 vs 2.3 Mpts/s, one thread)
                 if tx < ty:
                     if tx < tz:
                         if tx > lim:
