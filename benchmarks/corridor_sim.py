@@ -215,8 +215,8 @@ def bench_vo(seeds: list[int], length: float, peer_every: int, vo_scale: float =
         print(f"  dead-reckoning drift, seed {seed}: {100 * drift_m:.1f} cm and {drift_deg:.3f} "
               f"deg after {travelled:.1f} m ({100 * drift_m / travelled:.2f} % of distance)")
     if len(data["legacy_ms"]):
-        ours_cm = 100 * np.linalg.norm(data["ours_on_peer"][:, 3:], axis=1)
-        legacy_cm = 100 * np.linalg.norm(data["legacy_errors"][:, 3:], axis=1)
+        ours_cm = _translation_cm(data["ours_on_peer"])
+        legacy_cm = _translation_cm(data["legacy_errors"])
         print(f"  peer (Open3D legacy odometry, iterations (20, 10, 5), same PnP guess, "
               f"{len(legacy_cm)} pairs): median {np.median(data['legacy_ms']):.0f} ms vs ours "
               f"{np.median(data['ours_ms_on_peer']):.0f} ms (ratio legacy / ours "
@@ -226,12 +226,17 @@ def bench_vo(seeds: list[int], length: float, peer_every: int, vo_scale: float =
               f"{1e3 * _rms(data['legacy_errors'][:, 0]):.2f} vs "
               f"{1e3 * _rms(data['ours_on_peer'][:, 0]):.2f} mrad")
     if len(data["identity_errors"]):
-        peer_cm = 100 * np.linalg.norm(data["identity_errors"][:, 3:], axis=1)
-        ours_cm = 100 * np.linalg.norm(data["ours_on_identity"][:, 3:], axis=1)
+        peer_cm = _translation_cm(data["identity_errors"])
+        ours_cm = _translation_cm(data["ours_on_identity"])
         print(f"  peer (dense odometry from identity, {len(peer_cm)} pairs): median "
               f"translation error {np.median(peer_cm):.2f} cm vs ours "
               f"{np.median(ours_cm):.3f} cm; ratio peer / ours = "
               f"{np.median(peer_cm) / np.median(ours_cm):.0f}")
+
+
+def _translation_cm(errors) -> np.ndarray:
+    """Translation error norms (cm) of (N, 6) tangent errors [rotation, translation]."""
+    return 100 * np.linalg.norm(np.asarray(errors)[:, 3:], axis=1)
 
 
 def _rms(values) -> float:
