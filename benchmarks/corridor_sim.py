@@ -185,7 +185,7 @@ def bench_vo(seeds: list[int], length: float, peer_every: int, vo_scale: float =
     errors, covs, ms, failures = data["errors"], data["covs"], data["ms"], data["failures"]
     n_pairs = len(errors) + len(failures)
     rot_deg = np.degrees(np.linalg.norm(errors[:, :3], axis=1))
-    trans_cm = 100 * np.linalg.norm(errors[:, 3:], axis=1)
+    trans_cm = _translation_cm(errors)
     print(f"VO at {vo_scale:g} x 640x480 on simulated corridors (seeds {seeds}, {length} m, "
           f"clutter 2): {n_pairs} pairs, "
           f"{len(failures)} failures {sorted(set(failures))[:3]}; median {np.median(ms):.0f} ms "
