@@ -21,6 +21,7 @@ COMMAND_MODULES = (
     "pipelines.simulate_room_cmd",
     "pipelines.vpslam_cmd",
     "pipelines.register_cmd",
+    "pipelines.eval_cmd",
     "pipelines.plugins_cmd",
     "pipelines.demo_cmd",
 )
