@@ -58,10 +58,16 @@ class VPEKFEstimator:
         return self._ekf.update_vp(np.asarray(z, dtype=float).reshape(2), R).status == "updated"
 
     def slam_filter(self, K, T_world_camera, cov_pose, ekf_config):
-        """A fresh :class:`~estimation.vp_ekf.VanishingPointEKF` for the vpslam pipeline."""
-        from .vp_ekf import VanishingPointEKF
+        """A fresh filter for the vpslam pipeline: the error-state EKF
+        (:class:`~estimation.vp_eskf.VanishingPointESKF`) or, with ``ekf_config.state ==
+        "euler"``, the paper's :class:`~estimation.vp_ekf.VanishingPointEKF`."""
+        if ekf_config.state == "euler":
+            from .vp_ekf import VanishingPointEKF
 
-        return VanishingPointEKF(K, T_world_camera, cov_pose, ekf_config)
+            return VanishingPointEKF(K, T_world_camera, cov_pose, ekf_config)
+        from .vp_eskf import VanishingPointESKF
+
+        return VanishingPointESKF(K, T_world_camera, cov_pose, ekf_config)
 
     def error(self, x_true) -> np.ndarray:
         from .geometry import wrap_angle

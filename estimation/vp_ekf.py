@@ -75,7 +75,10 @@ class VpEkfConfig:
     direction_sigma : rad, direction noise for a Manhattan VP without a pixel covariance
     manhattan_association_deg : largest angle between a predicted and a measured direction
         for them to be associated
-    vo_failure_sigma : (rad, m) per-step standard deviations used by :meth:`predict_lost`
+    vo_failure_sigma : (rad, m) per-step standard deviations used when the odometry fails
+    state : "error" (default): the error-state EKF on SE(3) x SO(3)
+        (:class:`estimation.vp_eskf.VanishingPointESKF`), no singular pose; "euler": the
+        paper's 9-D Euler state (this module), for reproducing the paper
     """
 
     vp_model: str = "point"
@@ -85,9 +88,14 @@ class VpEkfConfig:
     gate_chi2: float = float(chi2.ppf(0.99, 2))
     direction_sigma: float = 0.01
     manhattan_association_deg: float = 10.0
-    vo_failure_sigma: tuple[float, float] = (0.05, 0.10)
+    vo_failure_sigma: tuple[float, float] = (0.05, 0.15)
+    state: str = "error"
 
     def __post_init__(self):
+        if self.state not in ("error", "euler"):
+            raise EstimationError(f"state must be 'error' or 'euler', got {self.state!r}")
+        object.__setattr__(self, "vo_failure_sigma", tuple(float(v) for v in
+                                                           self.vo_failure_sigma))
         if self.vp_model not in ("point", "manhattan"):
             raise EstimationError(f"vp_model must be 'point' or 'manhattan', got {self.vp_model!r}")
         if not self.vp_distance > 0:

@@ -296,6 +296,32 @@ class TumRgbdSequence:
     def __len__(self) -> int:
         return len(self._rgb_paths)
 
+    def groundtruth_at(self, stamp: float) -> gtsam.Pose3 | None:
+        """The ground-truth pose at ``stamp`` (interpolated), None outside or without it."""
+        return interpolate_poses(*self._gt, float(stamp), self.gt_max_gap)
+
+    def groundtruth_arrays(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(timestamps (M,), T_world_camera (M, 4, 4)) of groundtruth.txt, None without it."""
+        stamps, poses = self._gt
+        if len(stamps) == 0:
+            return None
+        T = np.array([_pose_from_row(row).matrix() for row in poses])
+        return stamps.copy(), T
+
+    def first_image_size(self) -> tuple[int, int] | None:
+        """(width, height) of the first readable colour image, None if none can be read."""
+        import cv2
+
+        for path in self._rgb_paths[:10]:
+            try:
+                data = np.frombuffer(_read_bytes(path), dtype=np.uint8)
+            except ImageError:
+                continue
+            image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+            if image is not None and image.ndim >= 2:
+                return int(image.shape[1]), int(image.shape[0])
+        return None
+
     def __iter__(self) -> Iterator[RgbdFrame]:
         for index in range(len(self)):
             yield self[index]

@@ -1,72 +1,79 @@
 """Vanishing-point EKF SLAM on a TUM-layout RGB-D sequence (Ji, Yamashita, Asama).
 
-Per frame: read the images -> RGB-D odometry against the previous frame (prediction,
-eq. (9)-(10)) -> vanishing point(s) (update, eq. (11)-(18)) -> a PoseGraph node at the
-filtered pose with its marginal covariance and a VO between-factor -> 5 cm voxel filter
-and octree insertion at the filtered pose (eq. (19)-(20)). Then the files: trajectory
-(TUM), graph (g2o), map (.bt, .ot), figure and report.
+:class:`VpSlam` is the SLAM as one per-frame step (``step(frame) -> FrameResult``, in the
+style of KISS-ICP's ``register_frame``):
 
-Failures never stop the run: a missing/unreadable frame or a failed VO step predicts with
-a constant-velocity guess and an inflated covariance; frames without a VP just predict.
-Every skipped update is counted with its reason in the report.
+    frame -> RGB-D odometry against the previous frame (prediction, eq. (9)-(10))
+          -> the structure's directions: depth surface normals and line vanishing points
+             (update, eq. (11)-(18), Mahalanobis-gated)
+          -> a PoseGraph node at the filtered pose with its covariance, the VO between
+             factor, and the 5 cm voxel-filtered scan (section 4)
+
+:func:`run_vpslam` is a loop over ``step`` plus I/O and timing; the octree map is fused from
+the graph's scans at the filtered poses (eq. (19)-(20)) with :func:`mapping.fuse`, the same
+function ``octofactor map`` runs on the written ``graph.graph``.
+
+Failures never stop the run: an unreadable frame is named on stderr and counted; a failed VO
+step predicts with the last increment and ``vo_failure_sigma``; frames without a direction
+just predict. World frame: docs/vp_ekf.md ("World frame").
 """
 from __future__ import annotations
 
 import json
-import math
+import sys
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from estimation.errors import OctofactorError
 from estimation.fileio import atomic_write
+from estimation.vp_ekf import VpEkfConfig
+from perception.odometry import OdometryConfig
+
+VP_MODELS = ("manhattan", "point", "none")
+DETECTORS = ("normals+lines", "normals", "lines", "seed")
+WORLD_FRAMES = ("auto", "groundtruth", "manhattan", "camera")
 
 
 @dataclass(frozen=True)
 class VpSlamConfig:
-    """Settings of :func:`run_vpslam`.
+    """Settings of :class:`VpSlam` and :func:`run_vpslam`.
 
     Attributes
     ----------
-    vp_model : "point" (the paper: seed detector, one VP point), "manhattan" (up to three
-        Manhattan VPs as directions) or "none" (VO only: the paper's baseline)
-    vp_distance : d of eq. (12) in metres
-    gate_chi2 : Mahalanobis gate of eq. (15) (chi-square, 2 dof; default 99 %)
-    gate_recovery_frames : after this many consecutive frames whose VP updates were all
-        gated, the filter is taken to have been misled (a VO outlier beyond its covariance,
-        then the VO's pitch bias carries the state ever further from the VP, so every later
-        VP is gated too): the pose covariance is inflated by ``gate_recovery_scale`` times
-        the last VO covariance (an identity VO step: the missed error is taken to have the
-        VO's own shape, whose pitch and vertical motion are coupled, so the VP can correct
-        both) and the frame's VP is applied again; 0 disables it
-    gate_recovery_scale : multiple of the VO covariance added on a recovery
-    vp_pixel_floor : px, added in quadrature to the detector's VP covariance
-    vo_failure_sigma : (rad, m) per-frame standard deviations when VO fails
+    vp_model : "manhattan" (default: up to three directions of the structure), "point" (the
+        paper's one VP) or "none" (VO only: the paper's baseline). The filter's
+        ``ekf.vp_model`` follows it.
+    detector : where the directions come from: "normals+lines" (default: depth surface
+        normals, after OPVO, then line VPs of :func:`perception.vanishing_points.
+        detect_manhattan`, as LPVO adds lines), "normals", "lines" or "seed" (the paper's
+        Hough detector, one forward VP; with vp_model "point")
+    world_frame : "auto" (ground truth of the first frame when it has one, else the
+        Manhattan frame), "groundtruth", "manhattan" (z along the vertical direction, x along
+        the dominant horizontal one, origin at the first camera), or "camera" (the paper: the
+        first body frame, camera looking along world x)
+    ekf : VpEkfConfig, the filter (state parametrisation, gate, VO-failure sigma)
+    odometry : OdometryConfig, the RGB-D odometry and its covariance model
+    vp_pixel_floor : px, added in quadrature to a line detector's VP covariance
     voxel_size : m, the voxel filter of section 4 (5 cm in the paper)
     map_resolution : m, octree leaf size
     max_range : m, rays longer than this are cut in the map (-1: no limit)
-    backproject_stride : keep every n-th pixel row/column before the voxel filter (4 at
-        640x480: 2.7 cm between samples at the Xtion's 3.5 m range, still denser than the
-        5 cm voxels, and a quarter of the points of stride 2)
-    build_map : False skips clouds and octree
-    vo_scale : image scale for the RGB-D odometry only (0.5: a quarter of the pixels;
-        on the simulated corridor ~3.8x faster with ~1.5x larger errors, covariance
-        calibrated for 320 px; VP and map keep full resolution)
+    backproject_stride : keep every n-th pixel row/column before the voxel filter
+    build_map : False skips scans and octree
+    vo_scale : image scale for the RGB-D odometry only (VP and map keep full resolution)
     estimator : name of a registered filter estimator (``octofactor plugins``) whose
-        ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter this
-        pipeline steps (docs/plugins.md); the built-in is ``vp_ekf``
+        ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter
     """
 
-    vp_model: str = "point"
-    vp_distance: float = 1000.0
-    gate_chi2: float = 9.21034037197618  # chi2.ppf(0.99, 2)
+    vp_model: str = "manhattan"
+    detector: str = "normals+lines"
+    world_frame: str = "auto"
+    ekf: VpEkfConfig = field(default_factory=lambda: VpEkfConfig(vp_model="manhattan"))
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
     vp_pixel_floor: float = 1.0
-    gate_recovery_frames: int = 3
-    gate_recovery_scale: float = 50.0
-    vo_failure_sigma: tuple[float, float] = (0.05, 0.15)
     voxel_size: float = 0.05
     map_resolution: float = 0.05
     max_range: float = 5.0
@@ -76,21 +83,327 @@ class VpSlamConfig:
     estimator: str = "vp_ekf"
 
     def __post_init__(self):
-        if self.vp_model not in ("point", "manhattan", "none"):
-            raise OctofactorError(
-                f"vp_model must be point, manhattan or none, got {self.vp_model!r}")
+        for name, allowed in (("vp_model", VP_MODELS), ("detector", DETECTORS),
+                              ("world_frame", WORLD_FRAMES)):
+            if getattr(self, name) not in allowed:
+                raise OctofactorError(f"{name} must be one of {', '.join(allowed)}, got "
+                                      f"{getattr(self, name)!r}")
+        if self.vp_model == "point" and self.detector not in ("seed", "lines"):
+            object.__setattr__(self, "detector", "seed")
+        if self.vp_model == "manhattan" and self.detector == "seed":
+            raise OctofactorError("the seed detector gives one VP: use vp_model='point'")
+        if self.vp_model != "none" and self.ekf.vp_model != self.vp_model:
+            object.__setattr__(self, "ekf", replace(self.ekf, vp_model=self.vp_model))
         if not 0.1 <= self.vo_scale <= 1.0:
             raise OctofactorError(f"vo_scale must be in [0.1, 1], got {self.vo_scale}")
 
+    @classmethod
+    def paper(cls, **changes) -> VpSlamConfig:
+        """The seed paper's system: 9-D Euler state, one VP point from the Hough detector,
+        world = first body frame, odometry covariance of the simulated corridor."""
+        base = cls(vp_model="point", detector="seed", world_frame="camera",
+                   ekf=VpEkfConfig(vp_model="point", state="euler"),
+                   odometry=OdometryConfig(cov_model="information"))
+        return replace(base, **changes)
 
-@dataclass
-class _Timings:
-    read: list = field(default_factory=list)
-    vo: list = field(default_factory=list)
-    vp_ekf: list = field(default_factory=list)
-    map: list = field(default_factory=list)
-    total: list = field(default_factory=list)
+    def to_dict(self) -> dict:
+        """Plain nested dict (tuples as lists) for report.json."""
+        def plain(value):
+            if isinstance(value, dict):
+                return {k: plain(v) for k, v in value.items()}
+            if isinstance(value, (tuple, list)):
+                return [plain(v) for v in value]
+            return value
 
+        return plain(asdict(self))
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What :meth:`VpSlam.step` did with one frame.
+
+    Attributes
+    ----------
+    index, timestamp : the frame's
+    T_world_camera : gtsam.Pose3, the filtered pose
+    cov_pose : (6, 6) its covariance, GTSAM tangent order [rotation, translation]
+    vo : the odometry result (None for the first frame)
+    vp_outcomes : list of estimation.vp_ekf.VpUpdate, one per direction tried
+    detections : number of directions the detectors gave
+    notes : reasons for skipped or degraded steps ("vo: ...", "vp: ...")
+    ms : dict of stage times (read is outside the step): vo, vp_ekf, scan
+    """
+
+    index: int
+    timestamp: float
+    T_world_camera: object
+    cov_pose: np.ndarray
+    vo: object
+    vp_outcomes: list
+    detections: int
+    notes: list
+    ms: dict
+
+
+class VpSlam:
+    """The VP-EKF SLAM as a per-frame step.
+
+    Parameters
+    ----------
+    intrinsics : perception.rgbd.CameraIntrinsics
+    config : VpSlamConfig
+    odometry_cache : optional dict shared by runs on the same frames (the odometry does not
+        depend on the filter); keys (previous index, index, vo_scale)
+
+    Attributes
+    ----------
+    graph : estimation.PoseGraph, a node per frame, VO between factors, scans
+    filter : the filter (None before the first frame)
+    counts : Counter of updates, gated directions, detections
+    world_frame : which world frame was used ("groundtruth", "manhattan", "camera")
+    """
+
+    def __init__(self, intrinsics, config: VpSlamConfig = VpSlamConfig(),
+                 odometry_cache: dict | None = None):
+        from estimation import PoseGraph
+        from estimation.plugins import create_estimator
+
+        self.config = config
+        self.intrinsics = intrinsics
+        self.K = intrinsics.K
+        self._estimator = create_estimator(config.estimator, kind="filter")
+        if not callable(getattr(self._estimator, "slam_filter", None)):
+            raise OctofactorError(
+                f"estimator {config.estimator!r} cannot run vpslam: it has no "
+                "slam_filter(K, T_world_camera, cov_pose, ekf_config) method (docs/plugins.md)")
+        self.vo_intrinsics, self._vo_frame = _vo_resampler(intrinsics, config.vo_scale)
+        self.graph = PoseGraph()
+        self.filter = None
+        self.counts: Counter = Counter()
+        self.world_frame = "pending"
+        self._cache = odometry_cache
+        self._prev = None          # (index, frame at the VO scale)
+        self._prev_node = None
+        self._T_guess = None       # last VO increment: the guess and the failure motion
+        self._gap = None           # (T, cov) predicted over unreadable frames since the node
+        s_rot, s_trans = config.ekf.vo_failure_sigma
+        self._failure_cov = np.diag([s_rot ** 2] * 3 + [s_trans ** 2] * 3)
+
+    # ------------------------------------------------------------------ the step
+    def step(self, frame) -> FrameResult:
+        """Filter one frame: predict with VO, update with the directions, add a node."""
+        import gtsam
+
+        notes: list[str] = []
+        ms: dict[str, float] = {}
+        t0 = time.perf_counter()
+        frame_vo = self._vo_frame(frame)
+        vo = None
+        if self.filter is None:
+            self._start(frame)
+        else:
+            vo = self._odometry(frame, frame_vo, notes)
+            if vo is not None and vo.success:
+                self.filter.predict_vo(vo.T_prev_curr, vo.cov)
+                self._T_guess = vo.T_prev_curr
+            else:
+                self.filter.predict_vo(self._T_guess, self._failure_cov)
+        ms["vo"] = (time.perf_counter() - t0) * 1e3
+
+        t1 = time.perf_counter()
+        outcomes, n_detected = self._directions(frame, notes)
+        self._maybe_level_world()
+        ms["vp_ekf"] = (time.perf_counter() - t1) * 1e3
+
+        t2 = time.perf_counter()
+        scan = self._scan(frame) if self.config.build_map else None
+        ms["scan"] = (time.perf_counter() - t2) * 1e3
+        T_world_camera = self.filter.T_world_camera
+        cov_pose = self.filter.pose_covariance()
+        self._add_node(frame, T_world_camera, cov_pose, scan, vo)
+        self._prev = (frame.index, frame_vo)
+        return FrameResult(frame.index, frame.timestamp, T_world_camera, cov_pose, vo,
+                           outcomes, n_detected, notes, ms)
+
+    def skip(self) -> None:
+        """A frame that could not be read: its time still passes (constant velocity)."""
+        if self.filter is None:
+            return
+        self.filter.predict_vo(self._T_guess, self._failure_cov)
+        T, cov = self._gap
+        self._gap = (T.compose(self._T_guess), cov + self._failure_cov)
+        self._prev = None  # the next VO has no partner
+
+    # ------------------------------------------------------------------ stages
+    def _start(self, frame) -> None:
+        import gtsam
+
+        cfg = self.config
+        use_gt = frame.T_world_camera_gt is not None and cfg.world_frame in (
+            "auto", "groundtruth")
+        if cfg.world_frame == "groundtruth" and frame.T_world_camera_gt is None:
+            raise OctofactorError("world_frame 'groundtruth': the first frame has no ground "
+                                  "truth")
+        if use_gt:
+            T0, self.world_frame = frame.T_world_camera_gt, "groundtruth"
+        elif cfg.world_frame == "camera" or cfg.vp_model == "none":
+            from estimation.geometry import R_BODY_CAMERA
+
+            # the paper: body frame at the origin, camera looking along world x
+            T0, self.world_frame = gtsam.Pose3(gtsam.Rot3(R_BODY_CAMERA), np.zeros(3)), "camera"
+        else:
+            T0, self.world_frame = gtsam.Pose3(), "pending"  # levelled by the directions
+        cov0 = np.diag([1e-6] * 6)
+        self.filter = self._estimator.slam_filter(self.K, T0, cov0, cfg.ekf)
+        self._T_guess = gtsam.Pose3()
+        self._gap = (gtsam.Pose3(), np.zeros((6, 6)))
+
+    def _odometry(self, frame, frame_vo, notes):
+        from perception.odometry import rgbd_odometry
+
+        if self._prev is None:
+            notes.append("vo: no previous frame")
+            return None
+        prev_index, prev_vo = self._prev
+        key = (prev_index, frame.index, self.config.vo_scale, self.config.odometry)
+        if self._cache is not None and key in self._cache:
+            vo = self._cache[key]
+        else:
+            try:
+                vo = rgbd_odometry(prev_vo, frame_vo, self.vo_intrinsics, T_init=self._T_guess,
+                                   config=self.config.odometry)
+            except OctofactorError as exc:
+                vo = _VoFailure(f"error: {type(exc).__name__}")
+            if self._cache is not None:
+                self._cache[key] = vo
+        if not vo.success:
+            notes.append(f"vo: {_reason_class(vo.reason)}")
+        return vo
+
+    def _directions(self, frame, notes) -> tuple[list, int]:
+        """Detect the structure's directions and update the filter; (outcomes, detected)."""
+        cfg = self.config
+        if cfg.vp_model == "none":
+            return [], 0
+        outcomes, detected = [], 0
+        if cfg.detector in ("normals+lines", "normals"):
+            from perception.manhattan_normals import manhattan_from_depth
+
+            guess = None
+            R_wm = getattr(self.filter, "R_world_manhattan", None)
+            if R_wm is not None:
+                guess = self.filter.T_world_camera.rotation().matrix().T @ R_wm
+            found = manhattan_from_depth(frame.depth_m, self.K, guess)
+            detected += len(found.directions)
+            if len(found.directions):
+                outcomes += self.filter.update_directions(found.directions,
+                                                          direction_covs=list(found.covs))
+        if cfg.detector in ("normals+lines", "lines"):
+            from perception.vanishing_points import detect_manhattan
+
+            bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
+            detection = detect_manhattan(bgr, self.K)
+            detected += len(detection.vps)
+            if detection.vps and cfg.vp_model == "manhattan":
+                uvs = [vp.uv for vp in detection.vps]
+                covs = [None if vp.uv is None else self._pixel_cov(vp.cov)
+                        for vp in detection.vps]
+                outcomes += self.filter.update_directions(
+                    np.array([vp.direction for vp in detection.vps]), uvs, covs)
+            elif detection.vps:
+                vp = detection.forward()
+                if vp is not None:
+                    outcomes.append(self.filter.update_vp(vp.uv, self._pixel_cov(vp.cov)))
+        if cfg.detector == "seed":
+            from perception.vanishing_points import detect_seed
+
+            bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
+            vp = detect_seed(bgr, K=self.K).forward()
+            if vp is not None:
+                detected += 1
+                outcomes.append(self.filter.update_vp(vp.uv, self._pixel_cov(vp.cov)))
+        if detected == 0:
+            notes.append("vp: none detected")
+        self.counts["vp_detections"] += detected
+        for outcome in outcomes:
+            if outcome.status in ("updated", "gated", "initialised"):
+                self.counts[f"vp_{outcome.status}"] += 1
+            else:
+                notes.append(f"vp: {outcome.reason}")
+        return outcomes, detected
+
+    def _pixel_cov(self, cov) -> np.ndarray:
+        cov = np.asarray(cov, dtype=float).reshape(2, 2)
+        cov = cov if np.all(np.isfinite(cov)) else np.eye(2) * 1e6
+        return cov + np.eye(2) * self.config.vp_pixel_floor ** 2
+
+    def _maybe_level_world(self) -> None:
+        """Once the structure is known, make its frame the world (z up, x forward)."""
+        if self.world_frame != "pending" or not getattr(self.filter, "vp_initialised", False):
+            return
+        R_wm = getattr(self.filter, "R_world_manhattan", None)
+        if R_wm is None or not hasattr(self.filter, "reanchor"):
+            self.world_frame = "camera"
+            return
+        import gtsam
+
+        R_new_old = level_rotation(self.filter.T_world_camera.rotation().matrix(), R_wm)
+        A = gtsam.Pose3(gtsam.Rot3(R_new_old), np.zeros(3))
+        origin = self.filter.T_world_camera.translation()
+        A = gtsam.Pose3(gtsam.Rot3(R_new_old), -(R_new_old @ origin))
+        self.filter.reanchor(A)
+        for node in self.graph.nodes.values():  # frames before the structure was found
+            node.pose = A.compose(node.pose)
+        self.world_frame = "manhattan"
+
+    def _scan(self, frame):
+        from estimation import Scan
+        from perception.rgbd import backproject, voxel_filter
+
+        points = backproject(frame.depth_m, self.intrinsics, stride=self.config.backproject_stride)
+        points = voxel_filter(points, self.config.voxel_size)
+        return Scan(points) if len(points) else None
+
+    def _add_node(self, frame, T_world_camera, cov_pose, scan, vo) -> None:
+        graph = self.graph
+        graph.add_node(frame.index, T_world_camera, frame.timestamp, scan=scan, cov=cov_pose)
+        if self._prev_node is None:
+            graph.add_prior(frame.index, T_world_camera, cov_pose)
+        else:
+            if vo is not None and vo.success:
+                step_T, step_cov = vo.T_prev_curr, vo.cov
+            else:
+                step_T, step_cov = self._T_guess, self._failure_cov
+            gap_T, gap_cov = self._gap
+            graph.add_between(self._prev_node, frame.index, gap_T.compose(step_T),
+                              gap_cov + step_cov)
+        import gtsam
+
+        self._gap = (gtsam.Pose3(), np.zeros((6, 6)))
+        self._prev_node = frame.index
+
+
+def level_rotation(R_world_camera: np.ndarray, R_world_manhattan: np.ndarray) -> np.ndarray:
+    """R_new_old: the rotation that makes the structure's frame the world frame.
+
+    z_new is the structure axis closest to the camera's up (-y of the optical frame), signed
+    up; x_new the remaining axis closest to the viewing direction, signed forward.
+    """
+    up = R_world_camera @ np.array([0.0, -1.0, 0.0])
+    forward = R_world_camera @ np.array([0.0, 0.0, 1.0])
+    axes = [R_world_manhattan[:, j] for j in range(3)]
+    k_up = int(np.argmax([abs(a @ up) for a in axes]))
+    z = axes[k_up] * np.sign(axes[k_up] @ up)
+    rest = [a for j, a in enumerate(axes) if j != k_up]
+    x = max(rest, key=lambda a: abs(a @ forward))
+    x = x * (1.0 if x @ forward >= 0 else -1.0)
+    x = x - (x @ z) * z
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    return np.vstack([x, y, z])  # rows: new axes in old coordinates
+
+
+# --------------------------------------------------------------------------- the run
 
 @dataclass(frozen=True)
 class VpSlamResult:
@@ -98,11 +411,12 @@ class VpSlamResult:
 
     Attributes
     ----------
-    graph : estimation.PoseGraph, one node per filtered frame
+    graph : estimation.PoseGraph, one node per filtered frame (with scans)
     tree : mapping.OcTree or None
     report : dict, the content of report.json
-    timestamps, positions, positions_gt : (N,), (N, 3), (N, 3) (nan rows without GT)
+    timestamps, positions : (N,), (N, 3)
     position_covs : (N, 3, 3) world-frame position covariances
+    T_world_camera : (N, 4, 4) filtered poses
     """
 
     graph: object
@@ -110,62 +424,33 @@ class VpSlamResult:
     report: dict
     timestamps: np.ndarray
     positions: np.ndarray
-    positions_gt: np.ndarray
     position_covs: np.ndarray
+    T_world_camera: np.ndarray
+    positions_gt: np.ndarray
 
 
 def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), intrinsics=None,
                progress: bool = True, max_frames: int | None = None,
-               odometry_cache: dict | None = None) -> VpSlamResult:
-    """Run the VP-EKF SLAM on the sequence in ``seq_dir``; write the outputs to ``out_dir``.
+               odometry_cache: dict | None = None, name: str | None = None) -> VpSlamResult:
+    """Run :class:`VpSlam` over the sequence in ``seq_dir``; write the outputs to ``out_dir``.
 
     ``intrinsics`` (perception.rgbd.CameraIntrinsics) overrides the sequence's camera file.
-    With ``out_dir`` None nothing is written (benchmarks). The visual odometry does not
-    depend on the filter, so runs of several filter variants on one sequence can share it:
-    pass the same ``odometry_cache`` dict (keyed by frame-index pairs; the reported VO
-    time is then the time measured when the entry was computed).
+    With ``out_dir`` None nothing is written (benchmarks). Runs of several filter variants on
+    one sequence can share the odometry through the same ``odometry_cache`` dict.
     """
-    import gtsam
+    from perception.rgbd import TumRgbdSequence
 
-    from estimation import PoseGraph, Scan
-    from estimation.plugins import create_estimator
-    from estimation.vp_ekf import VpEkfConfig
-    from perception.odometry import rgbd_odometry
-    from perception.rgbd import TumRgbdSequence, backproject, voxel_filter
-
-    estimator = create_estimator(config.estimator, kind="filter")
-    if not callable(getattr(estimator, "slam_filter", None)):
-        raise OctofactorError(
-            f"estimator {config.estimator!r} cannot run vpslam: it has no "
-            "slam_filter(K, T_world_camera, cov_pose, ekf_config) method (docs/plugins.md)")
     sequence = TumRgbdSequence(seq_dir, intrinsics=intrinsics)
-    intr = sequence.intrinsics
-    vo_intr, vo_frame = _vo_resampler(intr, config.vo_scale)
-    K = intr.K
     n_frames = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     if n_frames == 0:
         raise OctofactorError(f"{seq_dir}: the sequence has no associated frames")
-
-    tree, map_note = _make_tree(config) if config.build_map else (None, "disabled")
-    graph = PoseGraph()
-    counts = Counter()
-    skipped = Counter()
-    timings = _Timings()
-    rows_t, rows_p, rows_gt, rows_cov = [], [], [], []
-    ekf = None
-    prev_frame = None
-    prev_index = None
-    prev_node = None
-    T_guess = gtsam.Pose3()  # constant-velocity guess for the VO and for failures
-    # motion predicted over unreadable frames since the last node (for its between-factor;
-    # the covariances are summed without transport: they are inflated guesses anyway)
-    gap_T, gap_cov = gtsam.Pose3(), np.zeros((6, 6))
-    failure_cov = np.diag([config.vo_failure_sigma[0] ** 2] * 3
-                          + [config.vo_failure_sigma[1] ** 2] * 3)
-    pixel_floor = np.eye(2) * config.vp_pixel_floor ** 2
-    last_vo_cov = failure_cov  # the shape of a recovery inflation (see the config)
-    gated_run = 0  # consecutive frames whose VP updates were all gated
-
+    check_intrinsics(sequence)
+    slam = VpSlam(sequence.intrinsics, config, odometry_cache)
+    skipped_frames: Counter = Counter()
+    skipped_list: list[dict] = []
+    notes_count: Counter = Counter()
+    timings: dict[str, list] = {"read": [], "vo": [], "vp_ekf": [], "scan": [], "total": []}
+    results: list[FrameResult] = []
     indices = range(n_frames)
     if progress:
         from tqdm import tqdm
@@ -176,136 +461,79 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
         try:
             frame = sequence[index]
         except OctofactorError as exc:
-            skipped[f"frame unreadable: {type(exc).__name__}"] += 1
-            if ekf is not None:
-                # the frame's time still passes: constant velocity, inflated covariance
-                ekf.predict_vo(T_guess, failure_cov)
-                gap_T, gap_cov = gap_T.compose(T_guess), gap_cov + failure_cov
-                prev_frame = None  # the next VO has no partner: it predicts from the guess
+            reason = str(exc)
+            print(f"vpslam: skipped frame {index}: {reason}", file=sys.stderr)
+            skipped_frames[type(exc).__name__] += 1
+            skipped_list.append({"index": index, "reason": reason})
+            slam.skip()
             continue
-        timings.read.append((time.perf_counter() - start) * 1e3)
-        counts["frames"] += 1
-
-        t_vo = time.perf_counter()
-        frame_vo = vo_frame(frame)
-        resize_ms = (time.perf_counter() - t_vo) * 1e3
-        if ekf is None:
-            T0 = frame.T_world_camera_gt  # paper convention when no GT: body at identity
-            cov0 = np.diag([1e-6] * 3 + [1e-6] * 3)
-            ekf = estimator.slam_filter(K, T0, cov0, VpEkfConfig(
-                vp_model="point" if config.vp_model == "none" else config.vp_model,
-                vp_distance=config.vp_distance, gate_chi2=config.gate_chi2,
-                vo_failure_sigma=config.vo_failure_sigma))
-            vo_result = None
-        else:
-            t_vo = time.perf_counter()
-            if prev_frame is None:
-                vo_result = None
-                skipped["vo: no previous frame"] += 1
-                ekf.predict_vo(T_guess, failure_cov)
-            else:
-                cache_key = (prev_index, index, config.vo_scale)
-                if odometry_cache is not None and cache_key in odometry_cache:
-                    vo_result, measured_ms = odometry_cache[cache_key]
-                    t_vo = time.perf_counter() - measured_ms / 1e3
-                    start -= measured_ms / 1e3  # the frame's total counts the VO it reuses
-                else:
-                    try:
-                        vo_result = rgbd_odometry(prev_frame, frame_vo, vo_intr, T_init=T_guess)
-                    except OctofactorError as exc:  # e.g. a frame of the wrong size
-                        vo_result = _VoFailure(f"error: {type(exc).__name__}")
-                    if odometry_cache is not None:
-                        odometry_cache[cache_key] = (
-                            vo_result, (time.perf_counter() - t_vo) * 1e3)
-                if vo_result.success:
-                    ekf.predict_vo(vo_result.T_prev_curr, vo_result.cov)
-                    T_guess, last_vo_cov = vo_result.T_prev_curr, vo_result.cov
-                else:
-                    skipped[f"vo: {_reason_class(vo_result.reason)}"] += 1
-                    ekf.predict_vo(T_guess, failure_cov)
-            timings.vo.append((time.perf_counter() - t_vo) * 1e3 + resize_ms)
-
-        # --- vanishing points and EKF update
-        t_vp = time.perf_counter()
-        try:
-            detection = _vp_detect(config, frame, K, counts, skipped)
-            outcomes = _vp_update(ekf, config, detection, pixel_floor)
-            if outcomes and all(o.status == "gated" for o in outcomes):
-                gated_run += 1
-                if config.gate_recovery_frames and gated_run >= config.gate_recovery_frames:
-                    # the VO pitch bias drags a misled filter further away every frame:
-                    # widen the orientation and let this frame's VP pull it back
-                    ekf.predict_vo(gtsam.Pose3(), config.gate_recovery_scale * last_vo_cov)
-                    counts["vp_gate_recoveries"] += 1
-                    outcomes = _vp_update(ekf, config, detection, pixel_floor)
-                    gated_run = 0
-            elif outcomes:
-                gated_run = 0
-            for outcome in outcomes:
-                _count(outcome, counts, skipped)
-        except OctofactorError as exc:  # a detector or update error skips this frame's update
-            skipped[f"vp: error: {type(exc).__name__}"] += 1
-        timings.vp_ekf.append((time.perf_counter() - t_vp) * 1e3)
-
-        # --- pose graph node and VO factor
-        T_world_camera = ekf.T_world_camera
-        cov_pose = ekf.pose_covariance()
-        points_voxel = None
-        t_map = time.perf_counter()
-        if tree is not None:
-            points = backproject(frame.depth_m, intr, stride=config.backproject_stride)
-            points_voxel = voxel_filter(points, config.voxel_size)
-            if len(points_voxel):
-                # eq. (19)-(20): p_world = R_t p_sensor + x_S,t at the filtered pose
-                R = T_world_camera.rotation().matrix()
-                t = np.asarray(T_world_camera.translation())
-                tree.insert_point_cloud((points_voxel @ R.T + t).astype(np.float32), t,
-                                        max_range=config.max_range)
-            timings.map.append((time.perf_counter() - t_map) * 1e3)
-        graph.add_node(index, T_world_camera, frame.timestamp,
-                       scan=None if points_voxel is None else Scan(points_voxel),
-                       cov=cov_pose)
-        if prev_node is None:
-            graph.add_prior(index, T_world_camera, cov_pose)
-        else:
-            if vo_result is not None and vo_result.success:
-                step_T, step_cov = vo_result.T_prev_curr, vo_result.cov
-            else:
-                step_T, step_cov = T_guess, failure_cov
-            graph.add_between(prev_node, index, gap_T.compose(step_T), gap_cov + step_cov)
-        gap_T, gap_cov = gtsam.Pose3(), np.zeros((6, 6))
-        prev_node = index
-        prev_frame, prev_index = frame_vo, index
-
-        R_wc = T_world_camera.rotation().matrix()
-        rows_t.append(frame.timestamp)
-        rows_p.append(np.asarray(T_world_camera.translation(), dtype=float))
-        rows_cov.append(R_wc @ cov_pose[3:, 3:] @ R_wc.T)
-        gt = frame.T_world_camera_gt
-        rows_gt.append(np.full(3, np.nan) if gt is None else np.asarray(gt.translation(), float))
-        timings.total.append((time.perf_counter() - start) * 1e3)
-
-    if ekf is None:
+        timings["read"].append((time.perf_counter() - start) * 1e3)
+        result = slam.step(frame)
+        results.append(result)
+        for note in result.notes:
+            notes_count[note] += 1
+        for key in ("vo", "vp_ekf", "scan"):
+            timings[key].append(result.ms[key])
+        timings["total"].append((time.perf_counter() - start) * 1e3)
+    if not results:
         raise OctofactorError(f"{seq_dir}: no frame could be read")
-    positions, positions_gt = np.array(rows_p), np.array(rows_gt)
-    report = _report(config, counts, skipped, timings, positions, positions_gt, map_note,
-                     rows_cov[-1])
-    result = VpSlamResult(graph, tree, report, np.array(rows_t), positions, positions_gt,
-                          np.array(rows_cov))
+    tree, map_ms = None, None
+    if config.build_map:
+        t_map = time.perf_counter()
+        tree = _fuse(slam.graph, config)
+        map_ms = (time.perf_counter() - t_map) * 1e3 / len(results)
+    T = np.array([r.T_world_camera.matrix() for r in results])
+    covs = np.array([r.T_world_camera.rotation().matrix() @ r.cov_pose[3:, 3:]
+                     @ r.T_world_camera.rotation().matrix().T for r in results])
+    stamps = np.array([r.timestamp for r in results])
+    gt_positions = np.array([np.full(3, np.nan) if g is None else np.asarray(g.translation())
+                             for g in (sequence.groundtruth_at(t) for t in stamps)])
+    report = _report(config, slam, results, skipped_frames, skipped_list, notes_count,
+                     timings, map_ms, sequence, stamps, T, covs[-1], name)
+    out = VpSlamResult(slam.graph, tree, report, stamps, T[:, :3, 3], covs, T, gt_positions)
     if out_dir is not None:
-        write_outputs(result, out_dir)
-    return result
+        write_outputs(out, out_dir, sequence)
+    return out
 
 
-def write_outputs(result: VpSlamResult, out_dir) -> None:
-    """trajectory.txt, graph.g2o, map.bt, map.ot, trajectory.png and report.json."""
-    from estimation.io import write_g2o, write_tum
+def check_intrinsics(sequence) -> None:
+    """One-line error when the intrinsics cannot belong to the images (first frame's size,
+    principal point inside the image, finite positive focal lengths and depth scale)."""
+    intr = sequence.intrinsics
+    values = (intr.fx, intr.fy, intr.cx, intr.cy, intr.depth_scale)
+    if not all(np.isfinite(v) for v in values) or intr.fx <= 0 or intr.fy <= 0 \
+            or intr.depth_scale <= 0:
+        raise OctofactorError(f"{sequence.seq_dir}: intrinsics must be finite with positive "
+                              f"fx, fy and depth scale, got {values}")
+    if not (0 <= intr.cx <= intr.width and 0 <= intr.cy <= intr.height):
+        raise OctofactorError(f"{sequence.seq_dir}: principal point ({intr.cx}, {intr.cy}) "
+                              f"lies outside the {intr.width}x{intr.height} image")
+    size = sequence.first_image_size()
+    if size is not None and size != (intr.width, intr.height):
+        raise OctofactorError(f"{sequence.seq_dir}: the images are {size[0]}x{size[1]} but "
+                              f"the intrinsics are for {intr.width}x{intr.height}")
+    if intr.fx > 20 * intr.width or intr.fy > 20 * intr.height:
+        raise OctofactorError(f"{sequence.seq_dir}: focal length ({intr.fx}, {intr.fy}) does "
+                              f"not fit a {intr.width}x{intr.height} image")
+
+
+def _fuse(graph, config: VpSlamConfig):
+    from mapping import fuse
+
+    return fuse(graph, config.map_resolution, max_range=config.max_range)
+
+
+def write_outputs(result: VpSlamResult, out_dir, sequence=None) -> None:
+    """trajectory.txt (TUM), graph.g2o, graph.graph (OctoMap ScanGraph: poses + scans),
+    map.bt, map.ot, trajectory.png and report.json."""
+    from estimation.io import write_g2o, write_scan_graph, write_tum
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.txt", result.graph)
     write_g2o(out / "graph.g2o", result.graph)
     if result.tree is not None:
+        write_scan_graph(out / "graph.graph", result.graph)
         # .ot first: writing .bt converts the tree to max-likelihood, as OctoMap's
         # writeBinary does, and the .ot must keep the full log-odds.
         result.tree.write_ot(out / "map.ot")
@@ -324,70 +552,23 @@ def plot_trajectory(result: VpSlamResult, path) -> None:
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
     p, gt, covs = result.positions, result.positions_gt, result.position_covs
     step = max(1, len(p) // 40)
-    for ax, (a, b), name in ((axes[0], (0, 1), "y [m]"), (axes[1], (0, 2), "z [m]")):
+    for ax, (a, b), label in ((axes[0], (0, 1), "y [m]"), (axes[1], (0, 2), "z [m]")):
         if np.isfinite(gt).all(axis=1).any():
             ax.plot(gt[:, a], gt[:, b], "k-", lw=1.2, label="ground truth")
         ax.plot(p[:, a], p[:, b], "b.-", lw=0.8, ms=2, label="estimate")
         for k in range(0, len(p), step):
             ellipse = covariance_ellipse(p[k, [a, b]], covs[k][np.ix_([a, b], [a, b])])
             ax.plot(ellipse[:, 0], ellipse[:, 1], "r-", lw=0.5)
-        ax.set_ylabel(name)
+        ax.set_ylabel(label)
         ax.grid(True, lw=0.3)
     axes[0].set_title(f"VP-EKF SLAM ({result.report['vp_model']}): top and side views, "
-                      "2-sigma ellipses (vertical axes stretched)")
+                      "2-sigma ellipses")
     axes[0].legend(loc="best", fontsize=8)
     axes[1].set_xlabel("x [m]")
     save_figure(fig, path)
 
 
 # --------------------------------------------------------------------------- helpers
-
-def _make_tree(config: VpSlamConfig):
-    try:
-        from mapping import OcTree
-
-        return OcTree(config.map_resolution), "ok"
-    except (ImportError, AttributeError) as exc:  # the mapping package is optional here
-        import sys
-
-        print(f"vpslam: map skipped ({exc})", file=sys.stderr)
-        return None, f"skipped: {exc}"
-
-
-def _vp_detect(config, frame, K, counts, skipped):
-    """The frame's VP detection (None without one, or for vp_model "none"); counts it."""
-    from perception.vanishing_points import detect_manhattan, detect_seed
-
-    if config.vp_model == "none":
-        return None
-    bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
-    if config.vp_model == "point":
-        vp = detect_seed(bgr, K=K).forward()
-        if vp is None:
-            skipped["vp: none detected"] += 1
-        else:
-            counts["vp_detections"] += 1
-        return vp
-    detection = detect_manhattan(bgr, K)
-    if not detection.vps:
-        skipped["vp: none detected"] += 1
-        return None
-    counts["vp_detections"] += len(detection.vps)
-    return detection
-
-
-def _vp_update(ekf, config, detection, pixel_floor) -> list:
-    """Update the filter with a detection (eq. (11)-(18)); the outcomes, not yet counted."""
-    if detection is None:
-        return []
-    if config.vp_model == "point":
-        return [ekf.update_vp(detection.uv, _finite_cov(detection.cov) + pixel_floor)]
-    uvs = [vp.uv for vp in detection.vps]
-    covs = [None if vp.uv is None else _finite_cov(vp.cov) + pixel_floor
-            for vp in detection.vps]
-    return list(ekf.update_directions(np.array([vp.direction for vp in detection.vps]), uvs,
-                                      covs))
-
 
 @dataclass(frozen=True)
 class _VoFailure:
@@ -407,61 +588,69 @@ def _vo_resampler(intr, scale: float):
     return intr.resized(width, height), lambda frame: resize_frame(frame, width, height)
 
 
-def _finite_cov(cov) -> np.ndarray:
-    cov = np.asarray(cov, dtype=float).reshape(2, 2)
-    return cov if np.all(np.isfinite(cov)) else np.eye(2) * 1e6
-
-
 def _reason_class(reason: str) -> str:
     """The VO failure reason without its numbers (so the report can count them)."""
     return reason.split(" (")[0] if reason else "failed"
-
-
-def _count(outcome, counts: Counter, skipped: Counter) -> None:
-    if outcome.status == "updated":
-        counts["vp_updates"] += 1
-    elif outcome.status == "gated":
-        counts["vp_gated"] += 1
-    elif outcome.status == "initialised":
-        counts["vp_initialised"] += 1
-    else:
-        skipped[f"vp: {outcome.reason}"] += 1
 
 
 def _median(values) -> float | None:
     return float(np.median(values)) if len(values) else None
 
 
-def _report(config, counts, skipped, timings, positions, positions_gt, map_note,
-            final_position_cov) -> dict:
-    has_gt = np.isfinite(positions_gt).all(axis=1)
+def _report(config, slam, results, skipped_frames, skipped_list, notes_count, timings,
+            map_ms, sequence, stamps, T, final_position_cov, name) -> dict:
     report = {
-        "frames": int(counts["frames"]),
+        "name": name,
+        "frames": len(results),
         "vp_model": config.vp_model,
+        "detector": config.detector if config.vp_model != "none" else None,
+        "filter_state": config.ekf.state,
+        "world_frame": slam.world_frame,
         "estimator": config.estimator,
-        "vp_detections": int(counts["vp_detections"]),
-        "vp_updates": int(counts["vp_updates"]),
-        "vp_gated": int(counts["vp_gated"]),
-        "vp_initialised": int(counts["vp_initialised"]),
-        "vp_gate_recoveries": int(counts["vp_gate_recoveries"]),
-        "skipped_updates": dict(sorted(skipped.items())),
-        "ate_rmse_m": None,
-        "final_drift_xyz_m": None,
-        "ms_per_frame_median": _median(timings.vp_ekf),
-        "map_ms_per_frame_median": _median(timings.map),
-        "vo_ms_per_frame_median": _median(timings.vo),
-        "read_ms_per_frame_median": _median(timings.read),
-        "total_ms_per_frame_median": _median(timings.total),
-        "map": map_note,
-        # world frame, like final_drift_xyz_m: compare them axis by axis
+        "vp_detections": int(slam.counts["vp_detections"]),
+        "vp_updates": int(slam.counts["vp_updated"]),
+        "vp_gated": int(slam.counts["vp_gated"]),
+        "vp_initialised": int(slam.counts["vp_initialised"]),
+        "skipped_frames": dict(sorted(skipped_frames.items())),
+        "skipped_frame_list": skipped_list,
+        "skipped_updates": dict(sorted(notes_count.items())),
+        "ms_per_frame_median": _median(timings["vp_ekf"]),
+        "vo_ms_per_frame_median": _median(timings["vo"]),
+        "read_ms_per_frame_median": _median(timings["read"]),
+        "scan_ms_per_frame_median": _median(timings["scan"]),
+        "map_ms_per_frame_mean": map_ms,
+        "total_ms_per_frame_median": _median(timings["total"]),
         "final_position_sigma_m": np.sqrt(np.diag(final_position_cov)).tolist(),
-        "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(config).items()},
+        "config": config.to_dict(),
     }
-    if has_gt.any():
-        err = positions[has_gt] - positions_gt[has_gt]
-        report["ate_rmse_m"] = float(math.sqrt(np.mean(np.sum(err ** 2, axis=1))))
-        last = np.flatnonzero(has_gt)[-1]
-        report["final_drift_xyz_m"] = (positions[last] - positions_gt[last]).tolist()
-        report["travel_m"] = float(np.sum(np.linalg.norm(np.diff(positions_gt[has_gt], axis=0),
-                                                         axis=1)))
+    metrics = sequence_metrics(sequence, stamps, T)
+    report.update(metrics)
     return report
+
+
+METRIC_KEYS = ("matched", "ate_aligned_rmse_m", "ate_unaligned_rmse_m",
+               "ate_origin_aligned_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg",
+               "rot_err_mean_deg", "aligned_rot_err_mean_deg")
+
+
+def sequence_metrics(sequence, stamps, T) -> dict:
+    """evo-style metrics against the sequence's groundtruth.txt (None without it)."""
+    from estimation.errors import EstimationError
+    from estimation.evaluation import evaluate_trajectory
+
+    empty = {key: None for key in METRIC_KEYS}
+    empty["final_drift_xyz_m"] = None
+    gt = sequence.groundtruth_arrays()
+    if gt is None:
+        return empty
+    t_gt, T_gt = gt
+    try:
+        m = evaluate_trajectory(t_gt, T_gt, stamps, T).to_dict()
+    except EstimationError as exc:
+        empty["evaluation"] = str(exc)
+        return empty
+    out = {key: m[key] for key in METRIC_KEYS}
+    last_gt = sequence.groundtruth_at(stamps[-1])
+    out["final_drift_xyz_m"] = (None if last_gt is None else
+                                (T[-1][:3, 3] - np.asarray(last_gt.translation())).tolist())
+    return out

@@ -18,11 +18,29 @@ def register(add_command) -> None:
                         help="depth PNG units per metre (TUM: 5000; default from camera.txt)")
     parser.add_argument("--no-vp", action="store_true",
                         help="VO only, no vanishing-point update (the paper's baseline)")
-    parser.add_argument("--vp-model", choices=("point", "manhattan"), default="point",
-                        help="point: the paper's VP point (eq. (11)-(13)); manhattan: up to "
-                             "three Manhattan VPs as directions")
+    parser.add_argument("--vp-model", choices=("manhattan", "point"), default="manhattan",
+                        help="manhattan (default): up to three directions of the structure; "
+                             "point: the paper's one VP (eq. (11)-(13))")
+    parser.add_argument("--detector", choices=("normals+lines", "normals", "lines", "seed"),
+                        default=None,
+                        help="direction source (default normals+lines: depth surface normals "
+                             "and line VPs; seed: the paper's Hough detector, with --vp-model "
+                             "point)")
+    parser.add_argument("--filter", choices=("error", "euler"), default=None,
+                        help="error (default): error-state EKF on SE(3), any pose; euler: the "
+                             "paper's 9-D Euler state")
+    parser.add_argument("--world-frame", choices=("auto", "groundtruth", "manhattan", "camera"),
+                        default=None, help="auto (default): ground truth of the first frame, "
+                                           "else the level Manhattan frame (docs/vp_ekf.md)")
+    parser.add_argument("--vo-cov", choices=("motion", "information"), default=None,
+                        help="odometry covariance: motion (default, fitted on real RGB-D) or "
+                             "information (fitted on the simulated corridor)")
+    parser.add_argument("--paper", action="store_true",
+                        help="the seed paper's system: Euler state, point model, seed detector, "
+                             "first body frame, simulator-fitted VO covariance (flags after it "
+                             "still apply)")
     parser.add_argument("--vp-distance", type=float, default=1000.0,
-                        help="d of eq. (12) in metres (default 1000: the VP acts as a direction)")
+                        help="d of eq. (12) in metres (point model; default 1000: a direction)")
     parser.add_argument("--gate", type=float, default=None,
                         help="chi-square gate of eq. (15), 2 dof (default: 99 %% = 9.21)")
     parser.add_argument("--resolution", type=float, default=0.05, help="octree leaf size (m)")
@@ -43,13 +61,18 @@ def _intrinsics(text: str) -> tuple[float, float, float, float]:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 4 or not all(v > 0 for v in values[:2]):
-        raise argparse.ArgumentTypeError("expected fx,fy,cx,cy (four numbers, fx and fy > 0)")
+    import math
+
+    if len(values) != 4 or not all(math.isfinite(v) for v in values) \
+            or not all(v > 0 for v in values[:2]):
+        raise argparse.ArgumentTypeError("expected fx,fy,cx,cy (four finite numbers, fx and "
+                                         "fy > 0)")
     return values
 
 
 def run(args) -> int:
     import json
+    import math
     import sys
     from dataclasses import replace
     from pathlib import Path
@@ -60,18 +83,37 @@ def run(args) -> int:
     intrinsics = None
     if args.intrinsics is not None or args.depth_scale is not None:
         intrinsics = _resolve_intrinsics(Path(args.seq_dir), args.intrinsics, args.depth_scale)
-    config = VpSlamConfig(vp_model="none" if args.no_vp else args.vp_model,
-                          vp_distance=args.vp_distance, map_resolution=args.resolution,
-                          max_range=args.max_range, build_map=not args.no_map,
-                          vo_scale=args.vo_scale, estimator=args.estimator)
+    config = VpSlamConfig.paper() if args.paper else VpSlamConfig()
+    ekf, odometry = config.ekf, config.odometry
+    if args.filter is not None:
+        ekf = replace(ekf, state=args.filter)
     if args.gate is not None:
-        if not args.gate > 0:
-            raise OctofactorError(f"--gate must be positive, got {args.gate}")
-        config = replace(config, gate_chi2=args.gate)
+        if not (args.gate > 0 and math.isfinite(args.gate)):
+            raise OctofactorError(f"--gate must be a positive number, got {args.gate}")
+        ekf = replace(ekf, gate_chi2=args.gate)
+    if not math.isfinite(args.vp_distance) or args.vp_distance <= 0:
+        raise OctofactorError(f"--vp-distance must be a positive number, got {args.vp_distance}")
+    ekf = replace(ekf, vp_distance=args.vp_distance)
+    if args.vo_cov is not None:
+        odometry = replace(odometry, cov_model=args.vo_cov)
+    vp_model = "none" if args.no_vp else (config.vp_model if args.paper and
+                                          args.vp_model == "manhattan" else args.vp_model)
+    changes = dict(vp_model=vp_model, ekf=ekf, odometry=odometry,
+                   map_resolution=args.resolution, max_range=args.max_range,
+                   build_map=not args.no_map, vo_scale=args.vo_scale, estimator=args.estimator)
+    if args.detector is not None:
+        changes["detector"] = args.detector
+    elif vp_model == "manhattan":
+        changes["detector"] = "normals+lines"
+    if args.world_frame is not None:
+        changes["world_frame"] = args.world_frame
+    config = replace(config, **changes)
     result = run_vpslam(args.seq_dir, args.out, config, intrinsics=intrinsics,
-                        progress=not args.quiet, max_frames=args.max_frames)
+                        progress=not args.quiet, max_frames=args.max_frames,
+                        name=Path(args.out).name)
     summary = {k: result.report.get(k) for k in (
-        "frames", "vp_updates", "vp_gated", "ate_rmse_m", "final_drift_xyz_m",
+        "frames", "vp_updates", "vp_gated", "ate_aligned_rmse_m", "ate_unaligned_rmse_m",
+        "rot_err_mean_deg", "final_drift_xyz_m",
         "ms_per_frame_median", "total_ms_per_frame_median")}
     print(json.dumps(summary), file=sys.stdout)
     return 0
@@ -79,24 +121,28 @@ def run(args) -> int:
 
 def _resolve_intrinsics(seq_dir, fx_fy_cx_cy, depth_scale):
     """CameraIntrinsics from --intrinsics / --depth-scale over camera.txt (or the first image)."""
+    import math
     from dataclasses import replace
 
     from estimation.errors import FormatError
     from perception.rgbd import CAMERA_FILE_NAME, CameraIntrinsics, read_camera_file
 
     camera_file = seq_dir / CAMERA_FILE_NAME
-    if camera_file.is_file():
-        base = read_camera_file(camera_file)
-    else:
-        if fx_fy_cx_cy is None:
-            raise FormatError(camera_file, "camera file not found (give --intrinsics)")
+    if fx_fy_cx_cy is not None:
+        # the flag wins: camera.txt (perhaps of another layout) is not read at all
         width, height = _first_image_size(seq_dir)
         base = CameraIntrinsics(*fx_fy_cx_cy, width, height)
-    if fx_fy_cx_cy is not None:
-        fx, fy, cx, cy = fx_fy_cx_cy
-        base = replace(base, fx=fx, fy=fy, cx=cx, cy=cy)
+        if camera_file.is_file() and depth_scale is None:
+            try:
+                base = replace(base, depth_scale=read_camera_file(camera_file).depth_scale)
+            except FormatError:
+                pass  # another layout: TUM's default depth scale
+    elif camera_file.is_file():
+        base = read_camera_file(camera_file)
+    else:
+        raise FormatError(camera_file, "camera file not found (give --intrinsics)")
     if depth_scale is not None:
-        if not depth_scale > 0:
+        if not (depth_scale > 0 and math.isfinite(depth_scale)):
             from estimation.errors import OctofactorError
             raise OctofactorError(f"--depth-scale must be positive, got {depth_scale}")
         base = replace(base, depth_scale=depth_scale)
