@@ -44,6 +44,7 @@ STATE_DIM = 9
 POSE = slice(0, 6)
 ROT = slice(0, 3)
 MANHATTAN = slice(6, 9)
+_DEFAULT_CONFIG = VpEkfConfig(vp_model="manhattan")
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -108,7 +109,7 @@ class VanishingPointESKF(ExtendedKalmanFilter):
     """
 
     def __init__(self, K: np.ndarray, T_world_camera=None, cov_pose: np.ndarray | None = None,
-                 config: VpEkfConfig = VpEkfConfig(vp_model="manhattan")):
+                 config: VpEkfConfig = _DEFAULT_CONFIG):
         import gtsam
 
         super().__init__(dim_x=STATE_DIM, dim_z=2)

@@ -100,8 +100,9 @@ class VpSlamConfig:
     @classmethod
     def paper(cls, **changes) -> VpSlamConfig:
         """The seed paper's system: 9-D Euler state, one VP point from the Hough detector,
-        world = first body frame, odometry covariance of the simulated corridor."""
-        base = cls(vp_model="point", detector="seed", world_frame="camera",
+        odometry covariance of the simulated corridor. The Euler filter runs in the paper's
+        local frame (first body frame at the origin); poses are mapped to the world frame."""
+        base = cls(vp_model="point", detector="seed", world_frame="auto",
                    ekf=VpEkfConfig(vp_model="point", state="euler"),
                    odometry=OdometryConfig(cov_model="information"))
         return replace(base, **changes)
@@ -192,7 +193,6 @@ class VpSlam:
     # ------------------------------------------------------------------ the step
     def step(self, frame) -> FrameResult:
         """Filter one frame: predict with VO, update with the directions, add a node."""
-        import gtsam
 
         notes: list[str] = []
         ms: dict[str, float] = {}
@@ -218,8 +218,8 @@ class VpSlam:
         t2 = time.perf_counter()
         scan = self._scan(frame) if self.config.build_map else None
         ms["scan"] = (time.perf_counter() - t2) * 1e3
-        T_world_camera = self.filter.T_world_camera
-        cov_pose = self.filter.pose_covariance()
+        T_world_camera = self._T_world_local.compose(self.filter.T_world_camera)
+        cov_pose = self.filter.pose_covariance()  # right perturbation: unchanged by the map
         self._add_node(frame, T_world_camera, cov_pose, scan, vo)
         self._prev = (frame.index, frame_vo)
         return FrameResult(frame.index, frame.timestamp, T_world_camera, cov_pose, vo,
@@ -254,6 +254,18 @@ class VpSlam:
         else:
             T0, self.world_frame = gtsam.Pose3(), "pending"  # levelled by the directions
         cov0 = np.diag([1e-6] * 6)
+        self._T_world_local = gtsam.Pose3()
+        if cfg.ekf.state == "euler":
+            # the paper's Euler state is singular at pitch +-90 deg: run it in the paper's
+            # local frame (first body frame at the origin) and map its poses to the world
+            from estimation.geometry import R_BODY_CAMERA
+
+            T_local0 = gtsam.Pose3(gtsam.Rot3(R_BODY_CAMERA), np.zeros(3))
+            if self.world_frame == "pending":
+                self.world_frame = "camera"
+                T0 = T_local0
+            self._T_world_local = T0.compose(T_local0.inverse())
+            T0 = T_local0
         self.filter = self._estimator.slam_filter(self.K, T0, cov0, cfg.ekf)
         self._T_guess = gtsam.Pose3()
         self._gap = (gtsam.Pose3(), np.zeros((6, 6)))

@@ -47,7 +47,10 @@ def frames():
 
 @pytest.fixture(scope="module")
 def results(frames):
-    return [rgbd_odometry(frames[k], frames[k + 1], CONFIG.intrinsics) for k in range(N_PAIRS)]
+    # the simulated corridor's own covariance model (COV_CALIBRATION)
+    return [rgbd_odometry(frames[k], frames[k + 1], CONFIG.intrinsics,
+                          config=OdometryConfig(cov_model="information"))
+            for k in range(N_PAIRS)]
 
 
 def _truth(frames, k):
@@ -121,7 +124,7 @@ def test_left_to_right_covariance_by_monte_carlo(rng):
     A = rng.normal(size=(6, 6))
     cov_left = A @ A.T * 1e-4 + np.eye(6) * 1e-6
     T_hat = gtsam.Pose3(gtsam.Rot3.Ypr(0.3, -0.2, 0.1), np.array([0.5, -1.0, 2.0]))
-    config = OdometryConfig(cov_scale=1.0, cov_floor=(0.0,) * 6)
+    config = OdometryConfig(cov_scale=1.0, cov_floor=(0.0,) * 6, cov_model="information")
     expected = information_to_covariance(np.linalg.inv(cov_left), T_hat, config)
     samples = rng.multivariate_normal(np.zeros(6), cov_left, size=4000)
     right = np.array([T_hat.localCoordinates(gtsam.Pose3.Expmap(xi).compose(T_hat))
@@ -176,7 +179,8 @@ def test_floor_matrix_accepts_sigmas_or_a_matrix():
 def test_tensor_and_legacy_backends_agree(frames):
     legacy = rgbd_odometry(frames[1], frames[2], CONFIG.intrinsics,
                            config=OdometryConfig(backend="legacy", iterations=(10, 5, 3)))
-    tensor = rgbd_odometry(frames[1], frames[2], CONFIG.intrinsics)
+    tensor = rgbd_odometry(frames[1], frames[2], CONFIG.intrinsics,
+                           config=OdometryConfig(cov_model="information"))
     assert legacy.success and tensor.success
     truth = _truth(frames, 1)
     for result in (legacy, tensor):

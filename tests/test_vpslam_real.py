@@ -1,0 +1,90 @@
+"""vpslam on the real RGB-D development sequences (../shared/data/rgbd, TUM layout)."""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipelines.cli import main
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd"
+ICL = DATA / "icl_of_kt0"
+ICL_K = "481.2,480,319.5,239.5"
+TUM = DATA / "tum_fr1_rpy"
+TUM_K = "517.3,516.5,318.6,255.3"
+
+pytestmark = pytest.mark.skipif(not ICL.is_dir(), reason="../shared/data/rgbd is missing")
+
+
+def _run(seq, out, *flags, frames=40, intrinsics=ICL_K):
+    code = main(["vpslam", str(seq), "-o", str(out), "--quiet", "--no-map", "--intrinsics",
+                 intrinsics, "--max-frames", str(frames), *flags])
+    assert code == 0
+    return json.loads((out / "report.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def icl_runs(tmp_path_factory):
+    base = tmp_path_factory.mktemp("icl")
+    return {name: _run(ICL, base / name, *flags) for name, flags in (
+        ("default", ()), ("no_vp", ("--no-vp",)), ("lines", ("--detector", "lines")),
+        ("normals", ("--detector", "normals")))}
+
+
+def test_the_vp_update_reduces_the_rotation_drift_on_icl(icl_runs):
+    """Fails when the VP update is switched off: the directions must cut the VO's
+    rotation drift (measured on 40 frames: 0.61 deg without, ~0.1-0.2 deg with)."""
+    default, no_vp = icl_runs["default"], icl_runs["no_vp"]
+    assert default["vp_updates"] > 50
+    assert default["rot_err_mean_deg"] < 0.5 * no_vp["rot_err_mean_deg"]
+    assert default["ate_aligned_rmse_m"] <= no_vp["ate_aligned_rmse_m"] * 1.05
+    # each direction source alone helps too
+    for name in ("lines", "normals"):
+        assert icl_runs[name]["rot_err_mean_deg"] < no_vp["rot_err_mean_deg"]
+
+
+def test_report_is_evo_style_with_groundtruth(icl_runs):
+    report = icl_runs["default"]
+    assert report["matched"] == 40
+    assert report["world_frame"] == "groundtruth"
+    assert 0 < report["ate_aligned_rmse_m"] <= report["ate_unaligned_rmse_m"] + 1e-12
+    assert report["rpe_trans_rmse_m"] > 0 and report["rpe_rot_rmse_deg"] > 0
+
+
+def test_tum_groundtruth_starting_late_is_matched_by_time(tmp_path):
+    report = _run(TUM, tmp_path / "tum", frames=30, intrinsics=TUM_K)
+    # the motion capture starts after the first colour frames: fewer matches than frames
+    assert 0 < report["matched"] <= report["frames"] == 30
+    assert report["ate_aligned_rmse_m"] < 0.05
+    assert report["ate_unaligned_rmse_m"] < 0.2  # anchored at the first frame's GT pose
+
+
+def test_intrinsics_flag_wins_over_a_camera_file_of_another_layout(tmp_path):
+    seq = tmp_path / "seq"
+    shutil.copytree(ICL, seq)
+    (seq / "camera.txt").write_text("fx=481.2 fy=480\ncx=319.5 cy=239.5\n")
+    report = _run(seq, tmp_path / "out", frames=3)
+    assert report["frames"] == 3
+
+
+def test_intrinsics_that_do_not_fit_the_images_are_one_line_errors(tmp_path, capsys):
+    for intrinsics, words in (("481.2,480,1319.5,239.5", "outside"),
+                              ("1e9,480,319.5,239.5", "does not fit")):
+        code = main(["vpslam", str(ICL), "-o", str(tmp_path / "o"), "--quiet", "--no-map",
+                     "--intrinsics", intrinsics, "--max-frames", "2"])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and len(err) == 1 and words in err[0], err
+
+
+def test_a_corrupt_frame_is_named_skipped_and_counted(tmp_path, capsys):
+    seq = tmp_path / "seq"
+    shutil.copytree(ICL, seq)
+    names = [line.split()[1] for line in (seq / "rgb.txt").read_text().splitlines()
+             if line.strip() and not line.startswith("#")]
+    (seq / names[2]).write_bytes(b"not a png")
+    report = _run(seq, tmp_path / "out", frames=5)
+    err = capsys.readouterr().err
+    assert "skipped frame 2" in err and names[2].split("/")[-1] in err
+    assert report["frames"] == 4 and sum(report["skipped_frames"].values()) == 1
