@@ -5,9 +5,13 @@ or byte offset; every writer writes a temporary file and renames it.
 
 Quaternion orders: TUM lines are ``t tx ty tz qx qy qz qw`` (x y z w); g2o ``VERTEX_SE3:QUAT``
 is ``x y z qx qy qz qw``; OctoMap ``.graph`` stores ``qw qx qy qz`` (w first).
+
+A g2o file ``X.g2o`` written here gets a JSON sidecar ``X.g2o.json`` with what g2o cannot
+hold (timestamps, node covariances, direction factors); :func:`read_g2o` restores it.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
 import struct
@@ -17,9 +21,9 @@ from pathlib import Path
 import gtsam
 import numpy as np
 
-from .errors import FormatError, OctofactorError
+from .errors import EstimationError, FormatError, OctofactorError
 from .fileio import BinaryReader, atomic_write
-from .pose_graph import PoseGraph, Scan, node_key
+from .pose_graph import PoseGraph, Scan, as_covariance, direction_tangent_covariance, node_key
 
 PathLike = str | os.PathLike
 
@@ -99,7 +103,15 @@ def format_tum_line(timestamp: float, pose: gtsam.Pose3) -> str:
 
 
 def write_tum(path: PathLike, graph: PoseGraph) -> None:
-    """Write the node poses as a TUM trajectory in node-id order."""
+    """Write the node poses as a TUM trajectory in node-id order.
+
+    Refuses (:class:`OctofactorError`, nothing written) when the graph's timestamps are
+    unknown (``graph.timestamps_missing``, e.g. a g2o file read without its sidecar), rather
+    than writing made-up ones.
+    """
+    if graph.timestamps_missing is not None:
+        raise OctofactorError(f"{path}: a TUM trajectory needs timestamps, but "
+                              f"{graph.timestamps_missing}")
     with atomic_write(path, "w") as handle:
         handle.write("# timestamp tx ty tz qx qy qz qw\n")
         for node_id in graph.sorted_ids():
@@ -155,11 +167,16 @@ def _validate_g2o(path: PathLike) -> None:
 
 
 def read_g2o(path: PathLike) -> PoseGraph:
-    """Read a 3-D g2o file with ``gtsam.readG2o(path, is3D=True)``.
+    """Read a 3-D g2o file with ``gtsam.readG2o(path, is3D=True)``, and its sidecar if any.
 
     (Without ``is3D=True`` GTSAM silently returns an empty graph for a 3-D file.) GTSAM
     reorders g2o's information from [t, R] to the Pose3 tangent [R, t]. Edges between
     consecutive ids become ``odometry`` factors, the others ``loop`` factors.
+
+    The sidecar ``<path>.json`` (see :func:`write_g2o`), when present, restores the node
+    timestamps, node covariances and direction factors; one that does not match the g2o
+    file raises a :class:`FormatError` naming the sidecar. Without it the graph's
+    ``timestamps_missing`` says why there are none.
     """
     path = Path(path)
     _validate_g2o(path)
@@ -179,6 +196,15 @@ def read_g2o(path: PathLike) -> PoseGraph:
         cov = np.linalg.inv(noise.R().T @ noise.R())
         kind = "odometry" if abs(i - j) == 1 else "loop"
         graph.add_between(i, j, factor.measured(), cov, kind=kind)
+    sidecar = g2o_sidecar_path(path)
+    if sidecar.is_file():
+        _apply_g2o_sidecar(sidecar, graph)
+    else:
+        graph.timestamps_missing = (
+            f"{path} has none (g2o cannot store timestamps) and its sidecar {sidecar.name}, "
+            "which octofactor writes beside every .g2o, is missing: convert from the file "
+            "that has the timestamps (TUM trajectory, vpslam output) or keep the sidecar "
+            "beside the .g2o")
     return graph
 
 
@@ -187,14 +213,18 @@ def _g2o_numbers(values) -> str:
 
 
 def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
-    """Write node poses and between factors as a 3-D g2o file; return what was dropped.
+    """Write a 3-D g2o file and its JSON sidecar; return what neither holds (dropped).
 
     The layout is the one ``gtsam.writeG2o`` writes and ``gtsam.readG2o(path, True)``
     reads (``VERTEX_SE3:QUAT id x y z qx qy qz qw``; ``EDGE_SE3:QUAT i j x y z qx qy qz qw``
     and the upper triangle of the information matrix in g2o's [t, R] order), but with
     every number in shortest round-trip form: GTSAM's own writer prints 6 significant
-    digits and so moves poses by up to ~1e-6. Priors, robust kernels, custom factors,
-    timestamps and scans have no place in the file and are dropped.
+    digits and so moves poses by up to ~1e-6.
+
+    What g2o cannot hold -- node timestamps, node covariances and direction factors -- goes
+    to the sidecar ``<path>.json`` (:func:`g2o_sidecar_path`; schema in
+    docs/pose_graph_formats.md), written after the g2o file, each atomically. Priors,
+    robust kernels, custom factors and scans are dropped.
     """
     dropped: dict[str, None] = {}  # insertion-ordered set
     lines = []
@@ -205,6 +235,8 @@ def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
     reorder = np.r_[3:6, 0:3]
     upper = np.triu_indices(6)
     for record in graph.factors:
+        if record.kind == "direction" and "cov_tangent" in record.metadata:
+            continue  # in the sidecar
         if record.measured is None or len(record.nodes) != 2:
             dropped[f"{record.kind} factors"] = None
             continue
@@ -216,11 +248,207 @@ def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
                      f"{_g2o_numbers(info[upper])}")
     if any(node.scan is not None for node in graph.nodes.values()):
         dropped["scans"] = None
-    if any(node.timestamp != 0.0 for node in graph.nodes.values()):
-        dropped["timestamps"] = None
+    sidecar = _g2o_sidecar(path, graph)
     with atomic_write(path, "w") as handle:
         handle.write("\n".join(lines) + "\n")
+    with atomic_write(g2o_sidecar_path(path), "w") as handle:
+        handle.write(sidecar)
     return list(dropped)
+
+
+# ---------------------------------------------------------------- g2o sidecar
+G2O_SIDECAR_FORMAT = "octofactor-g2o-sidecar"
+G2O_SIDECAR_VERSION = 1
+
+
+def g2o_sidecar_path(path: PathLike) -> Path:
+    """The sidecar of a g2o file: ``X.g2o`` -> ``X.g2o.json``."""
+    path = Path(path)
+    return path.with_name(path.name + ".json")
+
+
+def _floats(array: np.ndarray) -> list:
+    return np.asarray(array, dtype=float).tolist()  # Python floats: json writes them with repr
+
+
+def _g2o_sidecar(path: PathLike, graph: PoseGraph) -> str:
+    """The sidecar's JSON text for ``graph`` written to ``path``."""
+    known = graph.timestamps_missing is None
+    nodes = []
+    for node_id in graph.sorted_ids():
+        node = graph.nodes[node_id]
+        nodes.append({"id": node_id, "timestamp": node.timestamp if known else None,
+                      "cov": None if node.cov is None else _floats(node.cov)})
+    directions = []
+    for record in graph.factors:
+        if record.kind == "direction" and "cov_tangent" in record.metadata:
+            meta = record.metadata
+            directions.append({
+                "node": record.nodes[0],
+                "direction_sensor": _floats(meta["direction_sensor"]),
+                "direction_world": _floats(meta["direction_world"]),
+                "cov": _floats(meta["cov"]),
+                "cov_tangent": _floats(meta["cov_tangent"]),
+            })
+    header = {"format": G2O_SIDECAR_FORMAT, "version": G2O_SIDECAR_VERSION,
+              "g2o": Path(path).name}
+
+    def dump(value) -> str:
+        try:
+            return json.dumps(value, allow_nan=False)
+        except ValueError:  # unreachable through PoseGraph's checks
+            raise OctofactorError(f"{g2o_sidecar_path(path)}: NaN or inf value") from None
+
+    # One node or factor per line: readable and diffable for long graphs.
+    parts = [f" {dump(key)}: {dump(value)}" for key, value in header.items()]
+    for key, entries in (("nodes", nodes), ("directions", directions)):
+        body = ",\n".join(f"  {dump(entry)}" for entry in entries)
+        parts.append(f' "{key}": [\n{body}\n ]' if entries else f' "{key}": []')
+    return "{\n" + ",\n".join(parts) + "\n}\n"
+
+
+def _as_covariance_2x2(cov: np.ndarray, what: str) -> np.ndarray:
+    """``cov`` as a symmetric positive-definite 2x2 array, else :class:`EstimationError`."""
+    cov = 0.5 * (cov + cov.T)
+    try:
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError:
+        raise EstimationError(f"{what} is not positive definite") from None
+    return cov
+
+
+def _reject_constant(name: str):
+    raise ValueError(f"non-finite number {name}")
+
+
+def _is_number(value) -> bool:
+    if type(value) not in (int, float):  # not bool, str, None, list
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:  # an integer beyond float range
+        return False
+
+
+def _sidecar_array(sidecar: Path, value, shape: tuple[int, ...], where: str) -> np.ndarray:
+    def leaves(item):
+        if isinstance(item, list):
+            for sub in item:
+                yield from leaves(sub)
+        else:
+            yield item
+
+    if not isinstance(value, list) or not all(_is_number(v) for v in leaves(value)):
+        raise FormatError(sidecar, f"{where} must be an array of shape {shape} of finite "
+                          "numbers")
+    try:
+        array = np.array(value, dtype=float)
+    except ValueError:
+        raise FormatError(sidecar, f"{where} must be an array of shape {shape}, got rows of "
+                          "different lengths") from None
+    if array.shape != shape:
+        raise FormatError(sidecar, f"{where} must be an array of shape {shape}, got shape "
+                          f"{array.shape}")
+    return array
+
+
+def _sidecar_list(sidecar: Path, document: dict, key: str) -> list:
+    value = document.get(key)
+    if not isinstance(value, list):
+        raise FormatError(sidecar, f"'{key}' must be a list")
+    for index, entry in enumerate(value):
+        if not isinstance(entry, dict):
+            raise FormatError(sidecar, f"{key}[{index}] must be an object")
+    return value
+
+
+def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
+    """Validate the sidecar against ``graph`` (read from its g2o file) and apply it."""
+    try:
+        document = json.loads(sidecar.read_text(encoding="utf-8"),
+                              parse_constant=_reject_constant)
+    except json.JSONDecodeError as exc:
+        raise FormatError(sidecar, f"not valid JSON: {exc.msg}", line=exc.lineno) from None
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise FormatError(sidecar, f"not valid JSON: {exc}") from None
+    if not isinstance(document, dict) or document.get("format") != G2O_SIDECAR_FORMAT:
+        raise FormatError(sidecar, f"not an octofactor g2o sidecar (no \"format\": "
+                          f"\"{G2O_SIDECAR_FORMAT}\")")
+    version = document.get("version")
+    if version != G2O_SIDECAR_VERSION:
+        raise FormatError(sidecar, f"sidecar version {version!r} is not one this octofactor "
+                          f"reads ({G2O_SIDECAR_VERSION})")
+    nodes = _sidecar_list(sidecar, document, "nodes")
+    directions = _sidecar_list(sidecar, document, "directions")
+
+    ids = []
+    for index, entry in enumerate(nodes):
+        node_id = entry.get("id")
+        if type(node_id) is not int:
+            raise FormatError(sidecar, f"nodes[{index}].id must be an integer")
+        ids.append(node_id)
+    if sorted(ids) != graph.sorted_ids():
+        only_sidecar = sorted(set(ids) - set(graph.nodes))[:5]
+        only_g2o = sorted(set(graph.nodes) - set(ids))[:5]
+        detail = ("duplicate ids" if len(set(ids)) != len(ids) else
+                  f"only in the sidecar: {only_sidecar}, only in the g2o file: {only_g2o}")
+        raise FormatError(sidecar, f"node ids do not match the g2o file ({len(ids)} in the "
+                          f"sidecar, {len(graph.nodes)} in the g2o file; {detail})")
+
+    stamps = {}
+    covs = {}
+    for index, entry in enumerate(nodes):
+        stamp = entry.get("timestamp")
+        if stamp is not None and not _is_number(stamp):
+            raise FormatError(sidecar, f"nodes[{index}].timestamp must be a finite number or "
+                              "null")
+        stamps[entry["id"]] = stamp
+        if entry.get("cov") is not None:
+            cov = _sidecar_array(sidecar, entry["cov"], (6, 6), f"nodes[{index}].cov")
+            try:
+                covs[entry["id"]] = as_covariance(cov, f"nodes[{index}].cov")
+            except EstimationError as exc:
+                raise FormatError(sidecar, str(exc)) from None
+    known = [stamp is not None for stamp in stamps.values()]
+    if any(known) and not all(known):
+        raise FormatError(sidecar, "some nodes have a timestamp and others null")
+
+    restored = []
+    for index, entry in enumerate(directions):
+        where = f"directions[{index}]"
+        node_id = entry.get("node")
+        if type(node_id) is not int or node_id not in graph.nodes:
+            raise FormatError(sidecar, f"{where}.node must be a node id of the g2o file")
+        vectors = []
+        for key in ("direction_sensor", "direction_world"):
+            vector = _sidecar_array(sidecar, entry.get(key), (3,), f"{where}.{key}")
+            if abs(float(np.linalg.norm(vector)) - 1.0) > 1e-6:
+                raise FormatError(sidecar, f"{where}.{key} is not a unit vector")
+            vectors.append(vector)
+        cov = _sidecar_array(sidecar, entry.get("cov"), (3, 3), f"{where}.cov")
+        try:
+            tangent = direction_tangent_covariance(
+                graph.nodes[node_id].pose.rotation().matrix(), *vectors, cov, f"{where}.cov")
+            if entry.get("cov_tangent") is not None:
+                tangent = _as_covariance_2x2(
+                    _sidecar_array(sidecar, entry["cov_tangent"], (2, 2), f"{where}.cov_tangent"),
+                    f"{where}.cov_tangent")
+        except EstimationError as exc:
+            raise FormatError(sidecar, str(exc)) from None
+        restored.append((node_id, *vectors, 0.5 * (cov + cov.T), tangent))
+
+    # Everything checked: now change the graph.
+    if all(known):
+        for node_id, stamp in stamps.items():
+            graph.nodes[node_id].timestamp = float(stamp)
+    else:
+        graph.timestamps_missing = (f"its source had none ({sidecar} records the node "
+                                    "timestamps as null)")
+    for node_id, cov in covs.items():
+        graph.nodes[node_id].cov = cov
+    for args in restored:
+        graph._add_direction(*args)
+
 
 
 # ---------------------------------------------------------------- OctoMap .graph
@@ -319,6 +547,7 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
         record.metadata.update({GRAPH_POSE_KEY: constraint, "weight": weight})
     if reader.remaining:
         raise reader.error(f"{reader.remaining} unexpected bytes after the last edge")
+    graph.timestamps_missing = f"{path} has none (OctoMap .graph files store no timestamps)"
     return graph
 
 
@@ -443,7 +672,8 @@ def _read_cloud(path: Path) -> np.ndarray:
 
 
 __all__ = [
-    "read_tum", "read_tum_arrays", "write_tum", "read_g2o", "write_g2o", "read_scan_graph",
+    "read_tum", "read_tum_arrays", "write_tum", "read_g2o", "write_g2o", "g2o_sidecar_path",
+    "read_scan_graph",
     "write_scan_graph",
     "read_pose_graph", "write_pose_graph", "load_node_clouds", "pose_from_tum", "pose_to_tum",
     "format_of", "node_key",

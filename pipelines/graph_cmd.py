@@ -38,7 +38,9 @@ def run_info(args) -> int:
     print(f"factors: {len(graph.factors)} ({kinds})")
     n_scans = sum(node.scan is not None for node in graph.nodes.values())
     print(f"points:  {graph.num_points()} in {n_scans} scans")
-    if len(stamps):
+    if graph.timestamps_missing is not None:
+        print("time:    unknown (the file has no timestamps)")
+    elif len(stamps):
         first, last = float(stamps.min()), float(stamps.max())
         print(f"time:    {first!r} .. {last!r} ({last - first:.6f} s)")
     return 0
@@ -63,11 +65,17 @@ def run_convert(args) -> int:
 
 def run_optimize(args) -> int:
     from estimation.io import read_pose_graph, write_pose_graph
+    from estimation.pose_graph import GAUGE_SIGMA
 
     graph = read_pose_graph(args.input)
     if not graph.factors:
         print("octofactor: note: the graph has no factors; nothing to optimise", file=sys.stderr)
+    # GTSAM failures arrive as one-line EstimationErrors (cli.main prints them, exit 2).
     result = graph.optimize(method=args.method, max_iterations=args.max_iterations)
+    if result.anchored_node is not None:
+        print(f"octofactor: note: the graph has no prior: node {result.anchored_node} is "
+              f"anchored at its initial pose by a weak prior (sigma {GAUGE_SIGMA:g} rad, "
+              f"{GAUGE_SIGMA:g} m) to fix the gauge", file=sys.stderr)
     print(f"initial error: {result.initial_error:.10g}")
     print(f"final error:   {result.final_error:.10g} "
           f"({result.iterations} iterations, {result.method})")

@@ -267,7 +267,8 @@ def test_writers_leave_no_temporary_files(tmp_path):
     write_tum(tmp_path / "a.txt", sim.graph)
     write_g2o(tmp_path / "a.g2o", sim.graph)
     write_scan_graph(tmp_path / "a.graph", sim.graph)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.g2o", "a.graph", "a.txt"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.g2o", "a.g2o.json", "a.graph",
+                                                         "a.txt"]
 
 
 def test_cloud_directory_errors(tmp_path):
