@@ -244,11 +244,12 @@ def manhattan_jacobian(x: np.ndarray, R_world_manhattan0: np.ndarray, axis: int)
     v = R_world_manhattan0[:, axis]
     w = R_delta @ v
     J = direction_jacobian(x, w)
-    J[:, VP] = -camera_rotation(x).T @ R_delta @ _skew(v) @ gtsam.Rot3.ExpmapDerivative(x[VP])
+    J[:, VP] = -camera_rotation(x).T @ R_delta @ skew(v) @ gtsam.Rot3.ExpmapDerivative(x[VP])
     return J
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
+    """[v]x, the (3, 3) cross-product matrix."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
@@ -289,6 +290,78 @@ def tangent_basis(d: np.ndarray) -> np.ndarray:
     b1 = np.cross(d, helper)
     b1 /= np.linalg.norm(b1)
     return np.column_stack([b1, np.cross(d, b1)])
+
+
+def unit_directions(directions) -> tuple[np.ndarray, np.ndarray]:
+    """(directions normalised (k, 3), good (k,) bool): rows with a finite non-zero norm."""
+    directions = np.asarray(directions, dtype=float).reshape(-1, 3)
+    norms = np.linalg.norm(directions, axis=1)
+    good = np.isfinite(norms) & (norms > 1e-9)
+    return np.where(good[:, None], directions / np.where(good, norms, 1.0)[:, None], 0.0), good
+
+
+def frame_from_two_directions(directions: np.ndarray, idx: np.ndarray) -> np.ndarray | None:
+    """The nearest orthonormal frame (3, 3; columns in the camera) to the first direction of
+    ``idx`` and the next one at least 60 degrees from it; None without such a pair."""
+    first = directions[idx[0]]
+    second = next((directions[j] for j in idx[1:]
+                   if abs(directions[j] @ first) < np.cos(np.deg2rad(60.0))), None)
+    if second is None:
+        return None
+    second = second - (second @ first) * first
+    second /= np.linalg.norm(second)
+    return np.column_stack([first, second, np.cross(first, second)])
+
+
+def associate_axis(predicted: np.ndarray, direction: np.ndarray, used: set[int],
+                   max_angle_deg: float) -> tuple[int, np.ndarray] | None:
+    """(axis, signed direction): the nearest predicted axis (rows of ``predicted``, camera
+    frame) not yet ``used``, within ``max_angle_deg`` sign-free (VPs have no sign); None."""
+    cosines = predicted @ direction
+    cos_assoc = np.cos(np.deg2rad(max_angle_deg))
+    axis = next((int(j) for j in np.argsort(-np.abs(cosines))
+                 if int(j) not in used and abs(cosines[j]) >= cos_assoc), None)
+    if axis is None:
+        return None
+    return axis, (direction if cosines[axis] > 0 else -direction)
+
+
+def pixel_covariance(cov_uv) -> np.ndarray:
+    """A VP pixel covariance as a symmetric (2, 2) array; EstimationError unless finite and
+    positive definite."""
+    Q = np.asarray(cov_uv, dtype=float).reshape(2, 2)
+    Q = 0.5 * (Q + Q.T)
+    if not np.all(np.isfinite(Q)) or np.linalg.eigvalsh(Q)[0] <= 0:
+        raise EstimationError("VP pixel covariance must be finite and positive definite")
+    return Q
+
+
+def direction_covariance(K: np.ndarray, uv=None, cov_uv=None, direction_cov=None,
+                         sigma: float = 0.01, floor: float = 1e-8) -> np.ndarray:
+    """The (3, 3) covariance of a unit direction in the camera: ``direction_cov`` as given,
+    else propagated from the pixel ``uv`` and its ``cov_uv``, else ``sigma`` isotropic.
+    ``floor`` (rad^2) keeps it positive definite."""
+    if direction_cov is not None:
+        C = np.asarray(direction_cov, dtype=float).reshape(3, 3)
+        if not np.all(np.isfinite(C)):
+            raise EstimationError("direction covariance must be finite")
+        return 0.5 * (C + C.T) + floor * np.eye(3)
+    if uv is not None and cov_uv is not None and np.all(np.isfinite(uv)):
+        _, dn_duv = pixel_ray(np.asarray(uv, dtype=float), K)
+        return dn_duv @ pixel_covariance(cov_uv) @ dn_duv.T + floor * np.eye(3)
+    return sigma ** 2 * np.eye(3)
+
+
+def checked_covariance(P: np.ndarray, what: str) -> np.ndarray:
+    """P symmetrised; EstimationError when it is not finite or not positive definite."""
+    P = 0.5 * (P + P.T)
+    if not np.all(np.isfinite(P)):
+        raise EstimationError(f"{what} covariance has NaN or inf entries")
+    try:
+        np.linalg.cholesky(P)
+    except np.linalg.LinAlgError:
+        raise EstimationError(f"{what} covariance lost positive definiteness") from None
+    return P
 
 
 @dataclass(frozen=True)
@@ -449,33 +522,27 @@ class VanishingPointEKF(ExtendedKalmanFilter):
         ``uvs`` / ``covs`` (optional, per direction) give the pixel and its covariance, from
         which the direction noise is propagated; otherwise ``config.direction_sigma`` is used.
         """
-        directions = np.asarray(directions, dtype=float).reshape(-1, 3)
+        directions, good = unit_directions(directions)
         k = len(directions)
         uvs = [None] * k if uvs is None else list(uvs)
         covs = [None] * k if covs is None else list(covs)
-        norms = np.linalg.norm(directions, axis=1)
-        good = np.isfinite(norms) & (norms > 1e-9)
         outcomes = [VpUpdate("skipped", "bad_direction") for _ in range(k)]
         if not good.any():
             return outcomes
-        directions = np.where(good[:, None], directions / np.where(good, norms, 1.0)[:, None], 0)
         if self.manhattan_R0 is None:
             return self._initialise_manhattan(directions, good, uvs, covs, outcomes)
         used: set[int] = set()
-        cos_assoc = np.cos(np.deg2rad(self.config.manhattan_association_deg))
         for i in np.flatnonzero(good):
             x = self.x.reshape(-1)
             R0 = self.manhattan_R0
             predicted = (camera_rotation(x).T @ manhattan_rotation(x, R0)).T  # rows: axes in cam
-            cosines = predicted @ directions[i]
-            order = np.argsort(-np.abs(cosines))
-            axis = next((int(j) for j in order if int(j) not in used
-                         and abs(cosines[j]) >= cos_assoc), None)
-            if axis is None:
+            match = associate_axis(predicted, directions[i], used,
+                                   self.config.manhattan_association_deg)
+            if match is None:
                 outcomes[i] = VpUpdate("skipped", "no_association")
                 continue
+            axis, d_meas = match
             used.add(axis)
-            d_meas = directions[i] if cosines[axis] > 0 else -directions[i]  # VPs have no sign
             B = tangent_basis(predicted[axis])
             Q = B.T @ self._direction_cov(uvs[i], covs[i]) @ B
             outcomes[i] = self._gated_update(
@@ -531,16 +598,10 @@ class VanishingPointEKF(ExtendedKalmanFilter):
         if len(idx) < 2:
             outcomes[idx[0]] = VpUpdate("skipped", "manhattan_needs_two_directions")
             return outcomes
-        first = directions[idx[0]]
-        second = next((directions[j] for j in idx[1:]
-                       if abs(directions[j] @ first) < np.cos(np.deg2rad(60.0))), None)
-        if second is None:
+        M_camera = frame_from_two_directions(directions, idx)
+        if M_camera is None:
             outcomes[idx[0]] = VpUpdate("skipped", "manhattan_needs_two_directions")
             return outcomes
-        # Nearest orthonormal frame to the two directions (camera coordinates).
-        second = second - (second @ first) * first
-        second /= np.linalg.norm(second)
-        M_camera = np.column_stack([first, second, np.cross(first, second)])
         x = self.x.reshape(-1)
         self.manhattan_R0 = camera_rotation(x) @ M_camera
         # delta = 0 carries the camera's world-rotation error (E de) and the detection noise.
@@ -562,30 +623,15 @@ class VanishingPointEKF(ExtendedKalmanFilter):
         return outcomes
 
     def _measurement_cov(self, cov_uv) -> np.ndarray:
-        Q = np.asarray(cov_uv, dtype=float).reshape(2, 2)
-        Q = 0.5 * (Q + Q.T)
-        if not np.all(np.isfinite(Q)) or np.linalg.eigvalsh(Q)[0] <= 0:
-            raise EstimationError("VP pixel covariance must be finite and positive definite")
-        return Q
+        return pixel_covariance(cov_uv)
 
     def _direction_cov(self, uv, cov) -> np.ndarray:
-        if uv is not None and cov is not None and np.all(np.isfinite(uv)):
-            _, dn_duv = pixel_ray(np.asarray(uv, dtype=float), self.K_cam)
-            Q = self._measurement_cov(cov)
-            # floor: a pixel covariance alone says nothing about the detector's model error
-            return dn_duv @ Q @ dn_duv.T + 1e-8 * np.eye(3)
-        return self.config.direction_sigma ** 2 * np.eye(3)
+        # floor: a pixel covariance alone says nothing about the detector's model error
+        return direction_covariance(self.K_cam, uv, cov, sigma=self.config.direction_sigma)
 
     def _finish_step(self) -> None:
         """Wrap the angles, symmetrise P and check that it is positive definite."""
         x = self.x.reshape(-1).copy()
         x[EULER] = wrap_angle(x[EULER])
         self.x = x.reshape(-1, 1)
-        P = 0.5 * (self.P + self.P.T)
-        if not np.all(np.isfinite(P)):
-            raise EstimationError("EKF covariance has NaN or inf entries")
-        try:
-            np.linalg.cholesky(P)
-        except np.linalg.LinAlgError:
-            raise EstimationError("EKF covariance lost positive definiteness") from None
-        self.P = P
+        self.P = checked_covariance(self.P, "EKF")

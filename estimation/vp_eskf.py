@@ -38,18 +38,25 @@ import numpy as np
 from filterpy.kalman import ExtendedKalmanFilter
 
 from .errors import EstimationError
-from .vp_ekf import VpEkfConfig, VpUpdate, pixel_ray, tangent_basis
+from .vp_ekf import (
+    VpEkfConfig,
+    VpUpdate,
+    associate_axis,
+    checked_covariance,
+    direction_covariance,
+    frame_from_two_directions,
+    pixel_covariance,
+    pixel_ray,
+    skew,
+    tangent_basis,
+    unit_directions,
+)
 
 STATE_DIM = 9
 POSE = slice(0, 6)
 ROT = slice(0, 3)
 MANHATTAN = slice(6, 9)
 _DEFAULT_CONFIG = VpEkfConfig(vp_model="manhattan")
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """[v]x, the (3, 3) cross-product matrix."""
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
@@ -190,12 +197,10 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         if uv is None or not np.all(np.isfinite(uv)):
             return VpUpdate("skipped", "vp_at_infinity")
         n, dn_duv = pixel_ray(np.asarray(uv, dtype=float).reshape(2), self.K_cam)
-        cov_dir = dn_duv @ _pixel_cov(cov_uv) @ dn_duv.T + 1e-10 * np.eye(3)
+        cov_dir = dn_duv @ pixel_covariance(cov_uv) @ dn_duv.T + 1e-10 * np.eye(3)
         if self.R_world_manhattan is None:
-            helper = np.array([0.0, 1.0, 0.0]) if abs(n[1]) < 0.9 else np.array([1.0, 0, 0])
-            b = np.cross(n, helper)
-            b /= np.linalg.norm(b)
-            self._initialise(np.column_stack([n, b, np.cross(n, b)]),
+            # any right-handed frame whose first axis is the VP (the others stay unobserved)
+            self._initialise(np.column_stack([n, tangent_basis(n)]),
                              float(np.trace(cov_dir)) / 2)
             self._observed_axes = {0}
             return VpUpdate("initialised")
@@ -215,32 +220,26 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         noise is propagated; ``direction_covs`` (k, 3, 3) give it directly (e.g. from depth
         normals); otherwise ``config.direction_sigma`` is used.
         """
-        directions = np.asarray(directions, dtype=float).reshape(-1, 3)
+        directions, good = unit_directions(directions)
         k = len(directions)
         uvs = [None] * k if uvs is None else list(uvs)
         covs = [None] * k if covs is None else list(covs)
         direction_covs = [None] * k if direction_covs is None else list(direction_covs)
-        norms = np.linalg.norm(directions, axis=1)
-        good = np.isfinite(norms) & (norms > 1e-9)
         outcomes = [VpUpdate("skipped", "bad_direction") for _ in range(k)]
         if not good.any():
             return outcomes
-        directions = np.where(good[:, None], directions / np.where(good, norms, 1.0)[:, None],
-                              0.0)
         if self.R_world_manhattan is None:
             return self._initialise_from(directions, good, uvs, covs, direction_covs, outcomes)
-        cos_assoc = np.cos(np.deg2rad(self.config.manhattan_association_deg))
         used: set[int] = set()
         for i in np.flatnonzero(good):
             predicted = (self.R_world_camera.T @ self.R_world_manhattan).T  # rows: axes
-            cosines = predicted @ directions[i]
-            axis = next((int(j) for j in np.argsort(-np.abs(cosines))
-                         if int(j) not in used and abs(cosines[j]) >= cos_assoc), None)
-            if axis is None:
+            match = associate_axis(predicted, directions[i], used,
+                                   self.config.manhattan_association_deg)
+            if match is None:
                 outcomes[i] = VpUpdate("skipped", "no_association")
                 continue
+            axis, d = match
             used.add(axis)
-            d = directions[i] if cosines[axis] > 0 else -directions[i]  # VPs have no sign
             outcomes[i] = self._update_axis(
                 axis, d, self._direction_cov(uvs[i], covs[i], direction_covs[i]))
         return outcomes
@@ -265,24 +264,11 @@ class VanishingPointESKF(ExtendedKalmanFilter):
             return VpUpdate("skipped", "non_finite_innovation")
         if nis > self.config.gate_chi2:
             return VpUpdate("gated", "mahalanobis", nis, z, S)
-        if getattr(self.config, "vp_moves_position", True):
-            # filterpy needs z as a (2, 1) column (a flat (2,) broadcasts and corrupts x)
-            self.update(z.reshape(2, 1), lambda _x: H, lambda _x: np.zeros((2, 1)), R=R)
-        else:
-            self._update_keep_position(z, H, R, S)
+        # filterpy needs z as a (2, 1) column (a flat (2,) broadcasts and corrupts x)
+        self.update(z.reshape(2, 1), lambda _x: H, lambda _x: np.zeros((2, 1)), R=R)
         self._inject()
         self._observed_axes.add(axis)
         return VpUpdate("updated", "", nis, z, S)
-
-    def _update_keep_position(self, z, H, R, S) -> None:
-        """A Schmidt update: the gain's translation rows are zeroed, so the VP corrects the
-        rotation and the structure only; the Joseph form keeps P exact for that gain."""
-        gain = self.P @ H.T @ np.linalg.inv(S)
-        gain[3:6, :] = 0.0
-        self.K, self.y, self.S, self.R = gain, z.reshape(2, 1), S, R
-        self.x = self.x + gain @ z.reshape(2, 1)
-        I_KH = np.eye(STATE_DIM) - gain @ H
-        self.P = I_KH @ self.P @ I_KH.T + gain @ R @ gain.T
 
     def _inject(self) -> None:
         """Move the error-state correction into the nominal state and reset it to zero."""
@@ -298,15 +284,10 @@ class VanishingPointESKF(ExtendedKalmanFilter):
     def _initialise_from(self, directions, good, uvs, covs, direction_covs, outcomes
                          ) -> list[VpUpdate]:
         idx = np.flatnonzero(good)
-        first = directions[idx[0]]
-        second = next((directions[j] for j in idx[1:]
-                       if abs(directions[j] @ first) < np.cos(np.deg2rad(60.0))), None)
-        if second is None:
+        M_camera = frame_from_two_directions(directions, idx)
+        if M_camera is None:
             outcomes[idx[0]] = VpUpdate("skipped", "manhattan_needs_two_directions")
             return outcomes
-        second = second - (second @ first) * first
-        second /= np.linalg.norm(second)
-        M_camera = np.column_stack([first, second, np.cross(first, second)])
         noise = max(float(np.trace(self._direction_cov(uvs[j], covs[j], direction_covs[j]))) / 2
                     for j in idx)
         self._initialise(M_camera, noise)
@@ -329,31 +310,9 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         self._finish_step()
 
     def _direction_cov(self, uv, cov, direction_cov=None) -> np.ndarray:
-        if direction_cov is not None:
-            C = np.asarray(direction_cov, dtype=float).reshape(3, 3)
-            if not np.all(np.isfinite(C)):
-                raise EstimationError("direction covariance must be finite")
-            return 0.5 * (C + C.T) + 1e-10 * np.eye(3)
-        if uv is not None and cov is not None and np.all(np.isfinite(uv)):
-            _, dn_duv = pixel_ray(np.asarray(uv, dtype=float), self.K_cam)
-            return dn_duv @ _pixel_cov(cov) @ dn_duv.T + 1e-10 * np.eye(3)
-        return self.config.direction_sigma ** 2 * np.eye(3)
+        return direction_covariance(self.K_cam, uv, cov, direction_cov,
+                                    self.config.direction_sigma, floor=1e-10)
 
     def _finish_step(self) -> None:
         """Symmetrise P and check that it is finite and positive definite."""
-        P = 0.5 * (self.P + self.P.T)
-        if not np.all(np.isfinite(P)):
-            raise EstimationError("ESKF covariance has NaN or inf entries")
-        try:
-            np.linalg.cholesky(P)
-        except np.linalg.LinAlgError:
-            raise EstimationError("ESKF covariance lost positive definiteness") from None
-        self.P = P
-
-
-def _pixel_cov(cov_uv) -> np.ndarray:
-    Q = np.asarray(cov_uv, dtype=float).reshape(2, 2)
-    Q = 0.5 * (Q + Q.T)
-    if not np.all(np.isfinite(Q)) or np.linalg.eigvalsh(Q)[0] <= 0:
-        raise EstimationError("VP pixel covariance must be finite and positive definite")
-    return Q
+        self.P = checked_covariance(self.P, "ESKF")
