@@ -34,22 +34,22 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-def _models():
+MODELS = ("none", "point", "manhattan", "default", "default-motion")
+
+
+def model_config(name: str):
+    """The VpSlamConfig of a benchmark model name (see --models)."""
     from perception.odometry import OdometryConfig
     from pipelines.vpslam import VpSlamConfig
 
-    paper = VpSlamConfig.paper
     return {
-        "none": lambda: paper(vp_model="none"),
-        "point": paper,
-        "manhattan": lambda: paper(vp_model="manhattan", detector="lines"),
+        "none": lambda: VpSlamConfig.paper(vp_model="none"),
+        "point": VpSlamConfig.paper,
+        "manhattan": lambda: VpSlamConfig.paper(vp_model="manhattan", detector="lines"),
         "default": lambda: VpSlamConfig(odometry=OdometryConfig(cov_model="information")),
         "default-motion": VpSlamConfig,
-    }
+    }[name]()
 
-
-MODELS = {name: (lambda n=name: _models()[n]()) for name in
-          ("none", "point", "manhattan", "default", "default-motion")}
 
 TARGETS = {"ate_rmse_m": 0.10, "final_abs_z_m": 0.05, "z_ratio": 5.0,
            "vp_ekf_ms": 15.0, "total_ms": 100.0}
@@ -173,7 +173,7 @@ def main(argv=None) -> int:
         seq = simulate(seed, args.work, realism)
         shared_vo: dict = {}
         for model in args.models:
-            config = replace(MODELS[model](), build_map=not args.no_map,
+            config = replace(model_config(model), build_map=not args.no_map,
                              vo_scale=args.vo_scale)
             report = run_vpslam(seq, None, config, progress=False,
                                 odometry_cache=shared_vo).report

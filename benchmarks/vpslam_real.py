@@ -95,20 +95,19 @@ def main(argv=None) -> int:
     parser.add_argument("--frames", type=int, default=None, help="first N frames only")
     args = parser.parse_args(argv)
 
-    from perception.rgbd import CameraIntrinsics, TumRgbdSequence
+    from perception.rgbd import CameraIntrinsics, TumRgbdSequence, listed_image_size
 
     sequences = ([(Path(d), tuple(float(v) for v in k.split(","))) for d, k in args.seq]
                  if args.seq else DEV)
     for seq, (fx, fy, cx, cy) in sequences:
-        probe = TumRgbdSequence(seq, intrinsics=CameraIntrinsics(fx, fy, cx, cy, 1, 1))
-        width, height = probe.first_image_size()
+        width, height = listed_image_size(seq)
         intr = CameraIntrinsics(fx, fy, cx, cy, width, height, 5000.0)
         rows, cache = {}, {}
         for name in ("default", "lines", "no-vp", "paper"):
             rows[name] = run_ours(seq, intr, name, cache, args.frames)
         for method in ("hybrid", "color"):
             rows[f"o3d-{method}"] = run_open3d(seq, intr, method, args.frames)
-        print(f"\n{seq.name} ({len(probe)} frames)")
+        print(f"\n{seq.name} ({len(TumRgbdSequence(seq, intrinsics=intr))} frames)")
         print(f"{'run':12s} {'aligned ATE [cm]':>16s} {'rot err [deg]':>14s} "
               f"{'RPE [mm]':>9s} {'ms/frame':>9s}")
         for name, r in rows.items():

@@ -307,16 +307,6 @@ def _g2o_sidecar(path: PathLike, graph: PoseGraph) -> str:
     return "{\n" + ",\n".join(parts) + "\n}\n"
 
 
-def _as_covariance_2x2(cov: np.ndarray, what: str) -> np.ndarray:
-    """``cov`` as a symmetric positive-definite 2x2 array, else :class:`EstimationError`."""
-    cov = 0.5 * (cov + cov.T)
-    try:
-        np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
-        raise EstimationError(f"{what} is not positive definite") from None
-    return cov
-
-
 def _reject_constant(name: str):
     raise ValueError(f"non-finite number {name}")
 
@@ -430,9 +420,9 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
             tangent = direction_tangent_covariance(
                 graph.nodes[node_id].pose.rotation().matrix(), *vectors, cov, f"{where}.cov")
             if entry.get("cov_tangent") is not None:
-                tangent = _as_covariance_2x2(
+                tangent = as_covariance(
                     _sidecar_array(sidecar, entry["cov_tangent"], (2, 2), f"{where}.cov_tangent"),
-                    f"{where}.cov_tangent")
+                    f"{where}.cov_tangent", dim=2)
         except EstimationError as exc:
             raise FormatError(sidecar, str(exc)) from None
         restored.append((node_id, *vectors, 0.5 * (cov + cov.T), tangent))

@@ -43,11 +43,11 @@ def node_key(node_id: int) -> int:
     return gtsam.symbol("x", int(node_id))
 
 
-def as_covariance(cov: np.ndarray, what: str = "covariance") -> np.ndarray:
-    """Return ``cov`` as a validated 6x6 symmetric positive-definite float array."""
+def as_covariance(cov: np.ndarray, what: str = "covariance", dim: int = 6) -> np.ndarray:
+    """Return ``cov`` as a validated dim x dim symmetric positive-definite float array."""
     cov = np.asarray(cov, dtype=float)
-    if cov.shape != (6, 6):
-        raise EstimationError(f"{what} must be 6x6, got shape {cov.shape}")
+    if cov.shape != (dim, dim):
+        raise EstimationError(f"{what} must be {dim}x{dim}, got shape {cov.shape}")
     if not np.all(np.isfinite(cov)):
         raise EstimationError(f"{what} has NaN or inf entries")
     cov = 0.5 * (cov + cov.T)

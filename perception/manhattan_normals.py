@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from estimation.vp_ekf import tangent_basis
 from perception.errors import PerceptionError
 
 
@@ -153,10 +154,9 @@ def depth_normals(depth_m: np.ndarray, fx: float, fy: float, cx: float, cy: floa
 
 
 def _nearest_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    return U @ D @ Vt
+    import gtsam
+
+    return gtsam.Rot3.ClosestTo(np.asarray(M, dtype=float)).matrix()
 
 
 def _ransac_frame(normals: np.ndarray, config: NormalsConfig) -> np.ndarray | None:
@@ -214,7 +214,7 @@ def manhattan_from_depth(depth_m: np.ndarray, K: np.ndarray,
                 continue
             m = normals[sel] * np.sign(c[sel])[:, None]
             # tangent-plane (log map) coordinates of the normals around axis j
-            B = _tangent_basis(R[:, j])
+            B = tangent_basis(R[:, j])
             cosang = np.clip(m @ R[:, j], -1.0, 1.0)
             ang = np.arccos(cosang)
             tang = m @ B
@@ -240,7 +240,7 @@ def manhattan_from_depth(depth_m: np.ndarray, K: np.ndarray,
         if count < config.min_normals or count < config.min_fraction * n_total:
             continue
         m = normals[sel] * np.sign(c[sel])[:, None]
-        B = _tangent_basis(R[:, j])
+        B = tangent_basis(R[:, j])
         tang = m @ B
         scatter = np.cov(tang.T) if count > 2 else np.eye(2)
         n_eff = max(1.0, count * eff_per_normal)
@@ -255,9 +255,3 @@ def manhattan_from_depth(depth_m: np.ndarray, K: np.ndarray,
                             np.array([f[0] for f in found]), n_total,
                             (time.perf_counter() - start) * 1e3)
 
-
-def _tangent_basis(d: np.ndarray) -> np.ndarray:
-    helper = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    b1 = np.cross(d, helper)
-    b1 /= np.linalg.norm(b1)
-    return np.column_stack([b1, np.cross(d, b1)])

@@ -251,6 +251,37 @@ def _pose_from_row(row: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(gtsam.Rot3.Quaternion(qw, qx, qy, qz), np.array([tx, ty, tz]))
 
 
+def first_image_size(paths) -> tuple[int, int] | None:
+    """(width, height) of the first readable image among ``paths``, None if none is.
+
+    Only the header is needed, but OpenCV has no header-only reader; these are the few
+    first images of a sequence."""
+    import cv2
+
+    for path in paths:
+        try:
+            data = np.frombuffer(_read_bytes(path), dtype=np.uint8)
+        except ImageError:
+            continue
+        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        if image is not None and image.ndim >= 2:
+            return int(image.shape[1]), int(image.shape[0])
+    return None
+
+
+def listed_image_size(seq_dir: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of the first colour image that ``seq_dir/rgb.txt`` lists (FormatError
+    naming the list or the image when there is none)."""
+    seq_dir = Path(seq_dir)
+    _, names = read_timestamp_list(seq_dir / "rgb.txt")
+    if not names:
+        raise FormatError(seq_dir / "rgb.txt", "no images listed")
+    size = first_image_size([seq_dir / names[0]])
+    if size is None:
+        raise FormatError(seq_dir / names[0], "cannot read the image")
+    return size
+
+
 class TumRgbdSequence:
     """The associated frames of a TUM-layout RGB-D folder, read lazily.
 
@@ -310,17 +341,7 @@ class TumRgbdSequence:
 
     def first_image_size(self) -> tuple[int, int] | None:
         """(width, height) of the first readable colour image, None if none can be read."""
-        import cv2
-
-        for path in self._rgb_paths[:10]:
-            try:
-                data = np.frombuffer(_read_bytes(path), dtype=np.uint8)
-            except ImageError:
-                continue
-            image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-            if image is not None and image.ndim >= 2:
-                return int(image.shape[1]), int(image.shape[0])
-        return None
+        return first_image_size(self._rgb_paths[:10])
 
     def __iter__(self) -> Iterator[RgbdFrame]:
         for index in range(len(self)):

@@ -108,15 +108,8 @@ class VpSlamConfig:
         return replace(base, **changes)
 
     def to_dict(self) -> dict:
-        """Plain nested dict (tuples as lists) for report.json."""
-        def plain(value):
-            if isinstance(value, dict):
-                return {k: plain(v) for k, v in value.items()}
-            if isinstance(value, (tuple, list)):
-                return [plain(v) for v in value]
-            return value
-
-        return plain(asdict(self))
+        """Nested dict of the settings (for report.json)."""
+        return asdict(self)
 
 
 @dataclass(frozen=True)
@@ -193,7 +186,6 @@ class VpSlam:
     # ------------------------------------------------------------------ the step
     def step(self, frame) -> FrameResult:
         """Filter one frame: predict with VO, update with the directions, add a node."""
-
         notes: list[str] = []
         ms: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -360,7 +352,6 @@ class VpSlam:
         import gtsam
 
         R_new_old = level_rotation(self.filter.T_world_camera.rotation().matrix(), R_wm)
-        A = gtsam.Pose3(gtsam.Rot3(R_new_old), np.zeros(3))
         origin = self.filter.T_world_camera.translation()
         A = gtsam.Pose3(gtsam.Rot3(R_new_old), -(R_new_old @ origin))
         self.filter.reanchor(A)

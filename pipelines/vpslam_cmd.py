@@ -125,12 +125,17 @@ def _resolve_intrinsics(seq_dir, fx_fy_cx_cy, depth_scale):
     from dataclasses import replace
 
     from estimation.errors import FormatError
-    from perception.rgbd import CAMERA_FILE_NAME, CameraIntrinsics, read_camera_file
+    from perception.rgbd import (
+        CAMERA_FILE_NAME,
+        CameraIntrinsics,
+        listed_image_size,
+        read_camera_file,
+    )
 
     camera_file = seq_dir / CAMERA_FILE_NAME
     if fx_fy_cx_cy is not None:
         # the flag wins: camera.txt (perhaps of another layout) is not read at all
-        width, height = _first_image_size(seq_dir)
+        width, height = listed_image_size(seq_dir)
         base = CameraIntrinsics(*fx_fy_cx_cy, width, height)
         if camera_file.is_file() and depth_scale is None:
             try:
@@ -148,17 +153,3 @@ def _resolve_intrinsics(seq_dir, fx_fy_cx_cy, depth_scale):
         base = replace(base, depth_scale=depth_scale)
     return base
 
-
-def _first_image_size(seq_dir) -> tuple[int, int]:
-    import cv2
-
-    from estimation.errors import FormatError
-    from perception.rgbd import read_timestamp_list
-
-    _, names = read_timestamp_list(seq_dir / "rgb.txt")
-    if not names:
-        raise FormatError(seq_dir / "rgb.txt", "no images listed")
-    image = cv2.imread(str(seq_dir / names[0]), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise FormatError(seq_dir / names[0], "cannot read the image")
-    return int(image.shape[1]), int(image.shape[0])

@@ -207,3 +207,12 @@ def test_final_sigma_is_world_frame_like_the_drift(corridor):
     # the camera looks along world x: its forward (z) sigma is the world x sigma, not world z
     R_wc = result.graph.nodes[result.graph.sorted_ids()[-1]].pose.rotation().matrix()
     assert abs(R_wc[0, 2]) > 0.9
+
+
+def test_map_is_the_fusion_of_the_written_scan_graph(point_run, tmp_path):
+    """`octofactor map graph.graph` rebuilds vpslam's map.bt byte for byte, so the map is
+    the graph's scans at the filtered node poses (whose accuracy the ATE tests check)."""
+    rebuilt = tmp_path / "rebuilt.bt"
+    assert main(["map", str(point_run / "graph.graph"), "-r", "0.05", "--max-range", "5",
+                 "-o", str(rebuilt)]) == 0
+    assert rebuilt.read_bytes() == (point_run / "map.bt").read_bytes()
