@@ -198,7 +198,7 @@ def main(argv=None) -> int:
               f"{ratio:8.1f}x  {r['ms_per_frame_median']:6.1f} {r['vo_ms_per_frame_median']:6.1f} "
               f"{_ms(r['map_ms_per_frame_mean'])} {r['read_ms_per_frame_median']:5.1f} "
               f"{r['total_ms_per_frame_median']:6.1f}        {r['vp_updates']}/{r['vp_gated']}"
-              f"  travel {r.get('travel_m', 0):.1f} m{aside}")
+              f"{aside}")
         if model != "none":
             verdicts.append((seed, model, aside, {
                 "ATE <= 0.10 m": r["ate_unaligned_rmse_m"] <= TARGETS["ate_rmse_m"],
