@@ -352,11 +352,18 @@ def direction_covariance(K: np.ndarray, uv=None, cov_uv=None, direction_cov=None
     return sigma ** 2 * np.eye(3)
 
 
-def checked_covariance(P: np.ndarray, what: str) -> np.ndarray:
-    """P symmetrised; EstimationError when it is not finite or not positive definite."""
+def checked_covariance(P: np.ndarray, what: str, semidefinite: bool = False) -> np.ndarray:
+    """P symmetrised; EstimationError when it is not finite or not positive definite
+    (``semidefinite``: not positive semi-definite, up to round-off; a state with a cloned
+    block is singular by construction)."""
     P = 0.5 * (P + P.T)
     if not np.all(np.isfinite(P)):
         raise EstimationError(f"{what} covariance has NaN or inf entries")
+    if semidefinite:
+        values = np.linalg.eigvalsh(P)
+        if values[0] < -1e-9 * max(values[-1], 1e-300):
+            raise EstimationError(f"{what} covariance lost positive semi-definiteness")
+        return P
     try:
         np.linalg.cholesky(P)
     except np.linalg.LinAlgError:

@@ -32,9 +32,14 @@ def register(add_command) -> None:
     parser.add_argument("--world-frame", choices=("auto", "groundtruth", "manhattan", "camera"),
                         default=None, help="auto (default): ground truth of the first frame, "
                                            "else the level Manhattan frame (docs/vp_ekf.md)")
-    parser.add_argument("--vo-cov", choices=("motion", "information"), default=None,
-                        help="odometry covariance: motion (default, fitted on real RGB-D) or "
-                             "information (fitted on the simulated corridor)")
+    parser.add_argument("--vo-cov", choices=("coupled", "motion", "information"), default=None,
+                        help="odometry covariance: coupled (default: fitted on real RGB-D, with "
+                             "the geometry's rotation-translation correlations), motion (the "
+                             "same sigmas, uncorrelated) or information (fitted on the "
+                             "simulated corridor)")
+    parser.add_argument("--keyframes", action="store_true",
+                        help="odometry against keyframes (cloned in the filter) instead of "
+                             "frame to frame (docs/vp_ekf.md)")
     parser.add_argument("--paper", action="store_true",
                         help="the seed paper's system: Euler state, point model, seed detector, "
                              "first body frame, simulator-fitted VO covariance (flags after it "
@@ -96,6 +101,8 @@ def run(args) -> int:
     ekf = replace(ekf, vp_distance=args.vp_distance)
     if args.vo_cov is not None:
         odometry = replace(odometry, cov_model=args.vo_cov)
+    if args.keyframes:
+        config = replace(config, keyframes=True)
     vp_model = "none" if args.no_vp else (config.vp_model if args.paper and
                                           args.vp_model == "manhattan" else args.vp_model)
     changes = dict(vp_model=vp_model, ekf=ekf, odometry=odometry,
