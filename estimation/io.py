@@ -430,9 +430,11 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
         if not isinstance(kind, str) or not kind:
             raise FormatError(sidecar, f"{where}.kind must be a non-empty string")
         values = _sidecar_array(sidecar, entry.get("pose"), (7,), f"{where}.pose")
-        quaternion = values[3:]
-        if abs(float(np.linalg.norm(quaternion)) - 1.0) > 1e-6:
-            raise FormatError(sidecar, f"{where}.pose: quaternion qx qy qz qw is not unit")
+        norm = float(np.linalg.norm(values[3:]))
+        if abs(norm - 1.0) > 1e-3:  # the tolerance of TUM files (a pose may come from one)
+            raise FormatError(sidecar, f"{where}.pose: quaternion qx qy qz qw has norm "
+                              f"{norm:.6g}, not 1")
+        values[3:] /= norm
         cov = _sidecar_array(sidecar, entry.get("cov"), (6, 6), f"{where}.cov")
         try:
             cov = as_covariance(cov, f"{where}.cov")

@@ -68,9 +68,9 @@ class VpSlamConfig:
     estimator : name of a registered filter estimator (``octofactor plugins``) whose
         ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter
     direction_factors : each direction the filter accepted becomes a graph direction factor
-        whose world direction is the structure axis as the filter estimated it when the axis
-        was first accepted ("fixed", default), the filter's prediction of the axis at this
-        update ("predicted"), or no factor ("none"); docs/vp_ekf.md ("The pose graph")
+        whose world direction is the filter's prediction of the structure axis at that
+        update ("predicted", default), the axis as the filter estimated it when it was first
+        accepted ("fixed"), or no factor ("none"); docs/vp_ekf.md ("The pose graph")
     """
 
     vp_model: str = "manhattan"
@@ -86,7 +86,7 @@ class VpSlamConfig:
     build_map: bool = True
     vo_scale: float = 1.0
     estimator: str = "vp_ekf"
-    direction_factors: str = "fixed"
+    direction_factors: str = "predicted"
 
     def __post_init__(self):
         for name, allowed in (("vp_model", VP_MODELS), ("detector", DETECTORS),
