@@ -1,5 +1,6 @@
 """The g2o sidecar X.g2o.json: what g2o cannot hold (timestamps, node covariances, priors,
-direction factors) survives a write -> read; a sidecar that lies is an error; no made-up timestamps."""
+direction factors) survives a write -> read; a sidecar that lies is an error; no made-up
+timestamps."""
 from __future__ import annotations
 
 import json
@@ -173,7 +174,8 @@ def _set(path: str, value):
     (_set("priors", {}), "'priors' must be a list"),
     (_set("priors/0/node", 9), r"priors\[0\].node must be a node id"),
     (_set("priors/0/pose", [0.0] * 6), r"priors\[0\].pose must be an array of shape \(7,\)"),
-    (_set("priors/0/pose", [0.0] * 7), r"priors\[0\].pose: quaternion qx qy qz qw has norm 0, not 1"),
+    (_set("priors/0/pose", [0.0] * 7),
+     r"priors\[0\].pose: quaternion qx qy qz qw has norm 0, not 1"),
     (_set("priors/0/cov", np.diag([1.0, 1, 1, 1, 1, -1]).tolist()), "not positive definite"),
     (_set("nodes/2/id", 7), r"node ids do not match the g2o file .*only in the sidecar: \[7\]"),
     (lambda d: d["nodes"].pop(), r"node ids do not match .*only in the g2o file: \[2\]"),
