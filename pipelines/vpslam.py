@@ -377,7 +377,7 @@ class VpSlam:
         for node in self.graph.nodes.values():  # frames before the structure was found
             node.pose = A.compose(node.pose)
         if self._prior is not None:  # the first node's prior moves with it
-            self.graph.factors.remove(self._prior)
+            self.graph.factors = [f for f in self.graph.factors if f is not self._prior]
             first = self.graph.nodes[self._prior.nodes[0]]
             self._prior = self.graph.add_prior(first.id, first.pose, self._prior.covariance)
         self._accepted = [replace(o, direction_world=R_new_old @ o.direction_world)

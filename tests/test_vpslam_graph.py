@@ -12,6 +12,8 @@ On the small simulated corridor of tests/test_vpslam.py (320x240, 11 frames, gro
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -162,3 +164,28 @@ def test_map_voxels_are_the_scans_at_the_groundtruth_poses(run, corridor):
     assert np.mean(distance < 2 * tree.resolution) > 0.95
     distance_back, _ = cKDTree(centres).query(endpoints)
     assert np.mean(distance_back < 2 * tree.resolution) > 0.9
+
+
+def test_levelling_the_world_later_moves_the_first_nodes_prior(corridor):
+    """Without ground truth the world is levelled when the structure is first found; when that
+    is after frame 0 the earlier nodes move, and the first node's prior must move with them
+    (else the saved graph pulls them back to the old frame)."""
+    from perception.rgbd import TumRgbdSequence
+    from pipelines.vpslam import VpSlam, VpSlamConfig
+
+    sequence = TumRgbdSequence(corridor)
+    slam = VpSlam(sequence.intrinsics, VpSlamConfig(build_map=False, detector="normals",
+                                                    world_frame="manhattan"))
+    levelled_at = None
+    for index in range(len(sequence)):
+        frame = replace(sequence[index], T_world_camera_gt=None)
+        if index < 2:  # no depth: no surface normals, the structure is found at frame 2
+            frame = replace(frame, depth_m=np.zeros_like(frame.depth_m))
+        slam.step(frame)
+        if levelled_at is None and slam.world_frame == "manhattan":
+            levelled_at = index
+    assert slam.world_frame == "manhattan"
+    assert levelled_at is not None and levelled_at > 0
+    priors = [r for r in slam.graph.factors if r.kind == "prior"]
+    assert len(priors) == 1 and priors[0].nodes == (0,)
+    assert priors[0].measured.equals(slam.graph.nodes[0].pose, 1e-12)
