@@ -305,11 +305,13 @@ class VanishingPointESKF(ExtendedKalmanFilter):
             return VpUpdate("skipped", "non_finite_innovation")
         if nis > self.config.gate_chi2:
             return VpUpdate("gated", "mahalanobis", nis, z, S)
+        d_world = self.R_world_manhattan[:, axis].copy()  # the prediction, for the graph
         # filterpy needs z as a (2, 1) column (a flat (2,) broadcasts and corrupts x)
         self.update(z.reshape(2, 1), lambda _x: H, lambda _x: np.zeros((2, 1)), R=R)
         self._inject()
         self._observed_axes.add(axis)
-        return VpUpdate("updated", "", nis, z, S)
+        return VpUpdate("updated", "", nis, z, S, axis, np.array(d_meas, dtype=float),
+                        np.array(cov_dir, dtype=float), d_world)
 
     def _inject(self) -> None:
         """Move the error-state correction into the nominal state and reset it to zero."""

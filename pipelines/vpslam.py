@@ -36,6 +36,7 @@ from perception.odometry import OdometryConfig
 VP_MODELS = ("manhattan", "point", "none")
 DETECTORS = ("normals+lines", "normals", "lines", "seed")
 WORLD_FRAMES = ("auto", "groundtruth", "manhattan", "camera")
+DIRECTION_FACTORS = ("fixed", "predicted", "none")
 
 
 @dataclass(frozen=True)
@@ -66,13 +67,17 @@ class VpSlamConfig:
     vo_scale : image scale for the RGB-D odometry only (VP and map keep full resolution)
     keyframes : False (default): frame-to-frame odometry (the paper); True: the odometry
         measures each frame against the last keyframe, whose pose the filter clones, so
-        frame-to-frame errors do not accumulate between keyframes (docs/vp_ekf.md). Needs a filter with
-        ``set_keyframe``/``predict_from_keyframe`` (the error-state one); others run frame to
-        frame.
+        frame-to-frame errors do not accumulate between keyframes (docs/vp_ekf.md). Needs a
+        filter with ``set_keyframe``/``predict_from_keyframe`` (the error-state one); others
+        run frame to frame.
     keyframe_translation, keyframe_rotation_deg : m, degrees; a frame further than this from
         the keyframe (filtered poses) becomes the next keyframe
     estimator : name of a registered filter estimator (``octofactor plugins``) whose
         ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter
+    direction_factors : each direction the filter accepted becomes a graph direction factor
+        whose world direction is the filter's prediction of the structure axis at that
+        update ("predicted", default), the axis as the filter estimated it when it was first
+        accepted ("fixed"), or no factor ("none"); docs/vp_ekf.md ("The pose graph")
     """
 
     vp_model: str = "manhattan"
@@ -91,10 +96,12 @@ class VpSlamConfig:
     keyframe_translation: float = 0.03
     keyframe_rotation_deg: float = 3.0
     estimator: str = "vp_ekf"
+    direction_factors: str = "predicted"
 
     def __post_init__(self):
         for name, allowed in (("vp_model", VP_MODELS), ("detector", DETECTORS),
-                              ("world_frame", WORLD_FRAMES)):
+                              ("world_frame", WORLD_FRAMES),
+                              ("direction_factors", DIRECTION_FACTORS)):
             if getattr(self, name) not in allowed:
                 raise OctofactorError(f"{name} must be one of {', '.join(allowed)}, got "
                                       f"{getattr(self, name)!r}")
@@ -162,7 +169,8 @@ class VpSlam:
 
     Attributes
     ----------
-    graph : estimation.PoseGraph, a node per frame, VO between factors, scans
+    graph : estimation.PoseGraph, a node per frame, VO between factors, a direction factor
+        per accepted direction, scans
     filter : the filter (None before the first frame)
     counts : Counter of updates, gated directions, detections
     world_frame : which world frame was used ("groundtruth", "manhattan", "camera")
@@ -193,6 +201,9 @@ class VpSlam:
         self._prev_node = None
         self._T_guess = None       # last increment: the guess and the failure motion
         self._gap = None           # (T, cov) predicted over unreadable frames since the node
+        self._accepted = []        # this frame's accepted directions (VpUpdate), for the graph
+        self._axes_world = {}      # "fixed" direction factors: axis -> world direction
+        self._prior = None         # the first node's prior factor (moved when levelling)
         s_rot, s_trans = config.ekf.vo_failure_sigma
         self._failure_cov = np.diag([s_rot ** 2] * 3 + [s_trans ** 2] * 3)
 
@@ -225,6 +236,8 @@ class VpSlam:
 
         t1 = time.perf_counter()
         outcomes, n_detected = self._directions(frame, notes)
+        self._accepted = [o for o in outcomes
+                          if o.status == "updated" and o.direction_sensor is not None]
         self._maybe_level_world()
         ms["vp_ekf"] = (time.perf_counter() - t1) * 1e3
 
@@ -423,6 +436,12 @@ class VpSlam:
         self.filter.reanchor(A)
         for node in self.graph.nodes.values():  # frames before the structure was found
             node.pose = A.compose(node.pose)
+        if self._prior is not None:  # the first node's prior moves with it
+            self.graph.factors = [f for f in self.graph.factors if f is not self._prior]
+            first = self.graph.nodes[self._prior.nodes[0]]
+            self._prior = self.graph.add_prior(first.id, first.pose, self._prior.covariance)
+        self._accepted = [replace(o, direction_world=R_new_old @ o.direction_world)
+                          for o in self._accepted]
         self.world_frame = "manhattan"
 
     def _scan(self, frame):
@@ -437,17 +456,31 @@ class VpSlam:
         graph = self.graph
         graph.add_node(frame.index, T_world_camera, frame.timestamp, scan=scan, cov=cov_pose)
         if self._prev_node is None:
-            graph.add_prior(frame.index, T_world_camera, cov_pose)
+            self._prior = graph.add_prior(frame.index, T_world_camera, cov_pose)
         elif partner is not None:  # the odometry's own measurement, keyframe to frame
             graph.add_between(partner, frame.index, vo.T_prev_curr, vo.cov)
         else:  # constant velocity since the last node, over any unreadable frames
             gap_T, gap_cov = self._gap
             graph.add_between(self._prev_node, frame.index, gap_T.compose(self._T_guess),
                               gap_cov + self._failure_cov)
+        self._add_directions(frame.index)
         import gtsam
 
         self._gap = (gtsam.Pose3(), np.zeros((6, 6)))
         self._prev_node = frame.index
+
+    def _add_directions(self, node_id: int) -> None:
+        """A direction factor per direction the filter accepted in this frame, with the
+        covariance the filter used. The world direction is the filter's estimate of the
+        structure axis (docs/vp_ekf.md, "The pose graph")."""
+        mode = self.config.direction_factors
+        for outcome in self._accepted if mode != "none" else ():
+            d_world = outcome.direction_world
+            if mode == "fixed":
+                d_world = self._axes_world.setdefault(outcome.axis, d_world)
+            self.graph.add_direction(node_id, outcome.direction_sensor, d_world,
+                                     outcome.direction_cov)
+        self._accepted = []
 
 
 def level_rotation(R_world_camera: np.ndarray, R_world_manhattan: np.ndarray) -> np.ndarray:

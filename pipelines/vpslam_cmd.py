@@ -57,6 +57,12 @@ def register(add_command) -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="use the first N frames")
     parser.add_argument("--estimator", default="vp_ekf", metavar="NAME",
                         help="filter estimator from `octofactor plugins` (vp_ekf)")
+    parser.add_argument("--direction-factors", choices=("predicted", "fixed", "none"),
+                        default=None,
+                        help="graph.g2o gets a direction factor per direction the filter "
+                             "accepted, its world direction the filter's prediction of the "
+                             "axis (predicted, default), the axis when first accepted (fixed), "
+                             "or none (docs/vp_ekf.md)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
@@ -114,6 +120,8 @@ def run(args) -> int:
         changes["detector"] = "normals+lines"
     if args.world_frame is not None:
         changes["world_frame"] = args.world_frame
+    if args.direction_factors is not None:
+        changes["direction_factors"] = args.direction_factors
     config = replace(config, **changes)
     result = run_vpslam(args.seq_dir, args.out, config, intrinsics=intrinsics,
                         progress=not args.quiet, max_frames=args.max_frames,
