@@ -531,16 +531,19 @@ class VpSlamResult:
 
 def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), intrinsics=None,
                progress: bool = True, max_frames: int | None = None,
-               odometry_cache: dict | None = None, name: str | None = None) -> VpSlamResult:
+               odometry_cache: dict | None = None, name: str | None = None,
+               distortion=None) -> VpSlamResult:
     """Run :class:`VpSlam` over the sequence in ``seq_dir``; write the outputs to ``out_dir``.
 
     ``intrinsics`` (perception.rgbd.CameraIntrinsics) overrides the sequence's camera file.
     With ``out_dir`` None nothing is written (benchmarks). Runs of several filter variants on
-    one sequence can share the odometry through the same ``odometry_cache`` dict.
+    one sequence can share the odometry through the same ``odometry_cache`` dict (only runs
+    on the same frames: the same ``distortion``). ``distortion`` (OpenCV k1, k2, p1, p2[, k3])
+    undistorts every frame on reading (perception.rgbd.Undistorter).
     """
     from perception.rgbd import TumRgbdSequence
 
-    sequence = TumRgbdSequence(seq_dir, intrinsics=intrinsics)
+    sequence = TumRgbdSequence(seq_dir, intrinsics=intrinsics, distortion=distortion)
     n_frames = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     if n_frames == 0:
         raise OctofactorError(f"{seq_dir}: the sequence has no associated frames")
@@ -707,6 +710,7 @@ def _report(config, slam, results, skipped_frames, skipped_list, notes_count, ti
         "filter_state": config.ekf.state,
         "world_frame": slam.world_frame,
         "estimator": config.estimator,
+        "distortion": None if sequence.distortion is None else list(sequence.distortion),
         "vp_detections": int(slam.counts["vp_detections"]),
         "vp_updates": int(slam.counts["vp_updated"]),
         "vp_gated": int(slam.counts["vp_gated"]),

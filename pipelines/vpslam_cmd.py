@@ -14,6 +14,10 @@ def register(add_command) -> None:
     parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY", type=_intrinsics,
                         help="override the sequence's camera file (image size from camera.txt "
                              "or the first image)")
+    parser.add_argument("--distortion", metavar="K1,K2,P1,P2[,K3]", default=None,
+                        help="the colour camera's lens distortion (OpenCV order; TUM fr1: "
+                             "0.2624,-0.9531,-0.0054,0.0026,1.1633): frames are undistorted "
+                             "on reading, the intrinsics stay the pinhole camera")
     parser.add_argument("--depth-scale", type=float, default=None,
                         help="depth PNG units per metre (TUM: 5000; default from camera.txt)")
     parser.add_argument("--no-vp", action="store_true",
@@ -123,7 +127,17 @@ def run(args) -> int:
     if args.direction_factors is not None:
         changes["direction_factors"] = args.direction_factors
     config = replace(config, **changes)
+    distortion = None
+    if args.distortion is not None:
+        from perception.rgbd import check_distortion
+
+        try:
+            distortion = check_distortion(float(v) for v in args.distortion.split(","))
+        except ValueError:
+            raise OctofactorError(f"--distortion must be comma-separated numbers, got "
+                                  f"{args.distortion!r}") from None
     result = run_vpslam(args.seq_dir, args.out, config, intrinsics=intrinsics,
+                        distortion=distortion,
                         progress=not args.quiet, max_frames=args.max_frames,
                         name=Path(args.out).name)
     summary = {k: result.report.get(k) for k in (
