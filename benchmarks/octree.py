@@ -125,13 +125,16 @@ def main() -> int:
     w.leaves()
     w.to_bytes_bt()
 
-    from numba import get_num_threads
+    from numba import threading_layer
+
+    from mapping.octree import _num_threads as get_num_threads
 
     print(f"# mapping.OcTree vs liboctomap (octomap-python), medians of {repeats} repeats "
           "(liboctomap: 1 run for the per-call queries)")
     print("# throughputs by CPU time (summed over threads); ratios by CPU time and by wall time")
     print(f"# liboctomap (Debian/PyPI build) is single-threaded; our insertion marks rays on "
-          f"{get_num_threads()} thread(s) (numba's default, NUMBA_NUM_THREADS), all else 1 thread")
+          f"{get_num_threads()} thread(s) (numba's default, NUMBA_NUM_THREADS; threading layer "
+          f"{threading_layer()}), all else 1 thread")
     print(f"# load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     n_scans, n_pts = (10, 20_000) if args.quick else (50, 100_000)
     scans = corridor_scans(n_scans, n_pts)

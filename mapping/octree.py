@@ -7,6 +7,7 @@ counts and files are bit-identical to liboctomap 1.9.7 (see docs/octree.md for t
 from __future__ import annotations
 
 import math
+import os
 import threading
 import warnings
 from dataclasses import dataclass
@@ -141,6 +142,24 @@ _GRID_LOCK = threading.Lock()
 _MARK_PATH = 0
 
 
+def _num_threads() -> int:
+    """numba's thread count (NUMBA_NUM_THREADS), with a threading layer that loads quietly.
+
+    The rays are marked on our own threads (``_executor``), not by numba ``parallel=True``
+    kernels, so numba's threading layer only answers this count. Left to itself numba tries TBB
+    first and warns on every run when the system's TBB is too old (Debian's 2021.5); "omp" (the
+    GNU OpenMP runtime Open3D loads anyway), then numba's built-in "workqueue", load without a
+    warning, and the layer does not change the insertion speed (benchmarks/octree.py,
+    docs/octree.md). NUMBA_THREADING_LAYER(_PRIORITY) in the environment still wins.
+    """
+    import numba
+
+    if not any(k in os.environ for k in ("NUMBA_THREADING_LAYER",
+                                         "NUMBA_THREADING_LAYER_PRIORITY")):
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+    return numba.get_num_threads()
+
+
 def _executor(n_workers: int):
     global _EXECUTOR
     if _EXECUTOR is None or _EXECUTOR._max_workers < n_workers:
@@ -156,7 +175,7 @@ def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: fl
     (non-finite, out of bounds, failed): the rays marked in shares on numba's threads
     (with ``discretize``, one ray per endpoint voxel centre)."""
     k = _k()
-    from numba import get_num_threads
+    get_num_threads = _num_threads
 
     skipped = (0, 0)
     if discretize:
