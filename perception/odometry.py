@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from estimation.config import coerce_fields
 from perception.errors import PerceptionError
 from perception.rgbd import CameraIntrinsics, RgbdFrame
 
@@ -217,6 +218,7 @@ class OdometryConfig:
     cov_model: str = "motion"
 
     def __post_init__(self):
+        coerce_fields(self)  # lists (JSON, TOML) -> tuples: equal to the original config
         if self.cov_model not in ("motion", "information"):
             raise PerceptionError(f"cov_model must be 'motion' or 'information', got "
                                   f"{self.cov_model!r}")

@@ -47,12 +47,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add_command(name: str, help: str, group: str | None = None) -> argparse.ArgumentParser:
         if group is None:
-            return top.add_parser(name, help=help, description=help)
-        if group not in groups:
-            group_parser = top.add_parser(group, help=GROUPS[group], description=GROUPS[group])
-            groups[group] = group_parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND")
-            group_parser.set_defaults(func=lambda args, p=group_parser: _usage(p))
-        return groups[group].add_parser(name, help=help, description=help)
+            command = top.add_parser(name, help=help, description=help)
+        else:
+            if group not in groups:
+                group_parser = top.add_parser(group, help=GROUPS[group],
+                                              description=GROUPS[group])
+                groups[group] = group_parser.add_subparsers(dest="subcommand",
+                                                            metavar="SUBCOMMAND")
+                group_parser.set_defaults(func=lambda args, p=group_parser: _usage(p))
+            command = groups[group].add_parser(name, help=help, description=help)
+        # one convention for every command (pipelines/cli_common.py)
+        command.add_argument("-q", "--quiet", action="store_true",
+                             help="no progress bars, nothing on stdout (errors and warnings "
+                             "still on stderr)")
+        return command
 
     for module_name in COMMAND_MODULES:
         try:
@@ -77,6 +85,17 @@ def main(argv: list[str] | None = None) -> int:
     from estimation.errors import OctofactorError
 
     try:
+        if getattr(args, "deterministic", False):
+            from pipelines.runtime import set_deterministic
+
+            set_deterministic(getattr(args, "seed", None))
+        if getattr(args, "quiet", False) and not getattr(args, "dump_config", False):
+            import contextlib
+            import os
+
+            os.environ["TQDM_DISABLE"] = "1"  # every progress bar, in any module
+            with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
+                return int(args.func(args) or 0)
         return int(args.func(args) or 0)
     except OctofactorError as exc:
         print(f"octofactor: error: {exc}", file=sys.stderr)
