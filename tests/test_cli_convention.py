@@ -140,3 +140,25 @@ def test_vpslam_deterministic_runs_are_bit_identical(tmp_path):
     assert outputs[0] == outputs[1]
     report = json.loads((tmp_path / "a" / "report.json").read_text())
     assert VpSlamConfig(**report["config"]) == replace(VpSlamConfig(), build_map=False)
+
+
+def test_graph_convert_reads_and_writes_kitti_poses(tmp_path, capsys):
+    import numpy as np
+
+    from estimation.io import read_pose_graph
+    from estimation.trajectory_io import read_kitti_arrays
+
+    source = tmp_path / "a.txt"
+    source.write_text("1.0 0 0 0 0 0 0 1\n2.0 1 2 3 0 0 0.6 0.8\n")
+    assert main(["graph", "convert", str(source), "-o", str(tmp_path / "a.kitti")]) == 0
+    assert "timestamps (dropped)" in capsys.readouterr().err
+    poses = read_kitti_arrays(tmp_path / "a.kitti")
+    assert np.allclose(poses[1][:3, 3], [1, 2, 3])
+    # KITTI in a .txt (the KITTI benchmark's naming) is recognised; TUM needs timestamps
+    (tmp_path / "k.txt").write_text((tmp_path / "a.kitti").read_text())
+    graph = read_pose_graph(tmp_path / "k.txt")
+    assert len(graph.nodes) == 2 and graph.timestamps_missing is not None
+    assert main(["graph", "convert", str(tmp_path / "a.kitti"), "-o", str(tmp_path / "b.g2o")]) \
+        == 0
+    assert main(["graph", "convert", str(tmp_path / "a.kitti"), "-o", str(tmp_path / "b.txt")]) \
+        == 2
