@@ -79,11 +79,38 @@ def _usage(parser: argparse.ArgumentParser) -> int:
     return 2
 
 
+def _one_line_warnings(python_showwarning):
+    """A ``warnings.showwarning`` that prints octofactor's own warnings (plug-ins skipped, ...)
+    as one clean line on stderr, and others as Python does (a normal run has none)."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        from estimation.plugins import PluginWarning
+
+        if issubclass(category, PluginWarning) or category.__module__.split(".")[0] in (
+                "estimation", "perception", "mapping", "pipelines"):
+            print(f"octofactor: warning: {message}", file=file or sys.stderr)
+        else:
+            python_showwarning(message, category, filename, lineno, file, line)
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
+    import warnings
+
     parser = build_parser()
     args = parser.parse_args(argv)
+    with warnings.catch_warnings():  # restores the warning display afterwards (tests)
+        warnings.showwarning = _one_line_warnings(warnings.showwarning)
+        return _run(args)
+
+
+def _run(args) -> int:
+    import os
+
     from estimation.errors import OctofactorError
 
+    tqdm_disable = os.environ.get("TQDM_DISABLE")
     try:
         if getattr(args, "deterministic", False):
             from pipelines.runtime import set_deterministic
@@ -91,7 +118,6 @@ def main(argv: list[str] | None = None) -> int:
             set_deterministic(getattr(args, "seed", None))
         if getattr(args, "quiet", False) and not getattr(args, "dump_config", False):
             import contextlib
-            import os
 
             os.environ["TQDM_DISABLE"] = "1"  # every progress bar, in any module
             with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
@@ -107,6 +133,15 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("octofactor: interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # `octofactor plugins | head`: the reader left, not an error
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
+    finally:
+        if tqdm_disable is None:
+            os.environ.pop("TQDM_DISABLE", None)
+        else:
+            os.environ["TQDM_DISABLE"] = tqdm_disable
 
 
 if __name__ == "__main__":

@@ -184,8 +184,13 @@ def _write(path: str, out: dict) -> None:
 
 
 def _summary(out: dict) -> str:
-    text = (f"{out['method']}: converged={out['converged']} ({out['reason']}), "
-            f"{out['iterations']} iterations, {out['inliers']} inliers, {out['time_s']:.3f} s")
+    """One line; a plug-in's result may not report iterations, inliers or a reason."""
+    parts = [f"converged={out['converged']}" + (f" ({out['reason']})" if out["reason"] else "")]
+    for key, unit in (("iterations", "iterations"), ("inliers", "inliers")):
+        if out[key] is not None:
+            parts.append(f"{out[key]} {unit}")
+    parts.append(f"{out['time_s']:.3f} s")
+    text = f"{out['method']}: " + ", ".join(parts)
     if "d_se3" in out:
         text += (f"; d_SE(3)={out['d_se3']:.4f}, t_err={out['t_err_m']:.4f} m, "
                  f"r_err={out['r_err_rad']:.4f} rad")
