@@ -28,7 +28,7 @@ COMMAND_MODULES = (
 
 # Commands that group sub-subcommands: `octofactor graph info`, `octofactor simulate room`, ...
 GROUPS = {
-    "graph": "pose graphs: info, convert, optimize (.graph / .g2o / TUM)",
+    "graph": "pose graphs: info, convert, optimize (.graph / .g2o / TUM / KITTI)",
     "octree": "octree files: info, convert, export (.bt / .ot)",
     "simulate": "synthetic data sets: corridor (RGB-D sequence), room (semantic clouds)",
 }

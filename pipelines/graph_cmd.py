@@ -12,7 +12,8 @@ def register(add_command) -> None:
     info.add_argument("file")
     info.set_defaults(func=run_info)
 
-    convert = add_command("convert", "convert between .graph, .g2o and TUM .txt", group="graph")
+    convert = add_command("convert", "convert between .graph, .g2o, TUM .txt and KITTI .kitti",
+                          group="graph")
     convert.add_argument("input", metavar="SOURCE")
     add_output(convert, "the converted file (.graph, .g2o, TUM .txt, KITTI .kitti)",
                old_positional=True)

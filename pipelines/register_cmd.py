@@ -37,7 +37,7 @@ def register(add_command) -> None:
     parser.add_argument("map_pos", metavar="MAP", nargs="?",
                         help="robot semantic map (PLY; the target)")
     parser.add_argument("--headset", help="the headset cloud, by name (instead of HEADSET)")
-    parser.add_argument("--map", dest="robot_map",
+    parser.add_argument("--map", dest="robot_map", metavar="MAP",
                         help="the robot's map, by name (instead of MAP)")
     parser.add_argument("--left-handed", action="store_true",
                         help="the headset cloud is in a left-handed frame (HoloLens/Unity)")
