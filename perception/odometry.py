@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from estimation.config import coerce_fields
 from perception.errors import PerceptionError
 from perception.rgbd import CameraIntrinsics, RgbdFrame
 
@@ -234,6 +235,7 @@ class OdometryConfig:
     coupling: float = COUPLING
 
     def __post_init__(self):
+        coerce_fields(self)  # lists (JSON, TOML) -> tuples: equal to the original config
         if self.cov_model not in ("coupled", "motion", "information"):
             raise PerceptionError(f"cov_model must be 'coupled', 'motion' or 'information', "
                                   f"got {self.cov_model!r}")
