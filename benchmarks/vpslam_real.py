@@ -137,14 +137,17 @@ def main(argv=None) -> int:
             nees = "-" if r.get("nees") is None else f"{r['nees']:.1f}"
             print(f"{name:14s} {r['ate'] * 100:14.2f} {r['rot']:14.3f} {r['rpe'] * 1e3:9.2f} "
                   f"{r['ms']:9.1f} {nees:>9s}")
-        d, v = rows["default"], rows["no-vp"]
         best = min(rows["o3d-hybrid"]["ate"], rows["o3d-color"]["ate"])
         best_rot = min(rows["o3d-hybrid"]["rot"], rows["o3d-color"]["rot"])
-        print("targets: rot < VO-only: {}; ATE <= VO-only: {}; ATE <= Open3D best: {}; "
-              "rot <= Open3D best: {}; total <= 100 ms: {}".format(
-                  *("PASS" if ok else "FAIL" for ok in (
-                      d["rot"] < v["rot"], d["ate"] <= v["ate"], d["ate"] <= best,
-                      d["rot"] <= best_rot, d["ms"] <= 100.0))))
+        for suffix in ("", " (raw)") if distortion is not None else ("",):
+            d, v = rows["default" + suffix], rows["no-vp" + suffix]
+            # Open3D ran on the undistorted frames only: the raw rows compare with VO alone
+            print(f"targets{suffix}: rot < VO-only: {{}}; ATE <= VO-only: {{}}; ".format(
+                *("PASS" if ok else "FAIL" for ok in (d["rot"] < v["rot"],
+                                                       d["ate"] <= v["ate"])))
+                  + ("" if suffix else "ATE <= Open3D best: {}; rot <= Open3D best: {}; "
+                     "total <= 100 ms: {}".format(*("PASS" if ok else "FAIL" for ok in (
+                         d["ate"] <= best, d["rot"] <= best_rot, d["ms"] <= 100.0)))))
     return 0
 
 
