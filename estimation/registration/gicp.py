@@ -195,12 +195,15 @@ class CovarianceDiagnostic:
         give about 2-3 (measured); much more means residuals correlated over distances the
         blocks do not span (an unmodelled systematic error): the covariance is then too small
     trusted : correlation_ratio <= RegistrationConfig.trust_ratio
+    model_covariance : (6, 6) the quantisation part of the reported covariance (zeros
+        without a lattice); ``covariance - model_covariance`` is the point-noise sandwich
     """
 
     quantisation_pitch: float | None
     model_error_share: float
     correlation_ratio: float
     trusted: bool
+    model_covariance: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -659,10 +662,7 @@ class Registration:
         pitch = self.quantisation_pitch
         B_model = np.zeros((6, 6))
         if pitch is not None:
-            group, sign = plane_groups(sol.normals, tgt, 3.0 * pitch)
-            V = np.zeros((int(group.max()) + 1, 6))
-            np.add.at(V, group, sign[:, None] * sol.sensitivity)
-            B_model = pitch ** 2 / 12.0 * V.T @ V
+            B_model = quantisation_information(sol.normals, tgt, sol.sensitivity, pitch)
         sandwich = cfg.covariance == "sandwich"
         scale = self._scale(src)
         H_normal = self._normal_information(T, src, tgt, corr, w)
@@ -677,10 +677,13 @@ class Registration:
             cov_model, _ = covariance_from_information(sol.A, B_model, scale, H_normal,
                                                        cfg.degeneracy_ratio)
             S2 = np.array([scale ** 2] * 3 + [1.0] * 3)
-            share = float(np.trace(cov_model / S2[:, None]) / np.trace(cov / S2[:, None])) \
+            share = float(np.trace(cov_model * S2[:, None]) / np.trace(cov * S2[:, None])) \
                 if pitch is not None and not unconstrained else 0.0
             ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
-            diagnostic = CovarianceDiagnostic(pitch, share, ratio, ratio <= cfg.trust_ratio)
+            if pitch is None:
+                cov_model = np.zeros((6, 6))
+            diagnostic = CovarianceDiagnostic(pitch, share, ratio, ratio <= cfg.trust_ratio,
+                                              cov_model)
         inliers = len(corr)
         if unconstrained:
             converged = False
@@ -747,8 +750,8 @@ def plane_groups(normals: np.ndarray, points: np.ndarray, thickness: float,
 
     Normals are oriented so that their largest component is positive (``sign`` flips the
     given ones); a group is one cell of (normal binned by ``angle_bin`` per component, offset
-    ``n . x`` binned by ``thickness``): coplanar patches share it, as they share a lattice's
-    quantisation offset.
+    ``n . x`` binned by ``thickness``): the points of one plane share it, and so do coplanar
+    patches, which on a lattice share the quantisation offset too.
     """
     big = np.argmax(np.abs(normals), axis=1)
     sign = np.where(normals[np.arange(len(normals)), big] < 0.0, -1.0, 1.0)
@@ -759,23 +762,23 @@ def plane_groups(normals: np.ndarray, points: np.ndarray, thickness: float,
     return group.reshape(-1), sign
 
 
-def quantisation_covariance(sol: SolutionTerms, pitch: float, A_inv: np.ndarray
-                            ) -> np.ndarray:
-    """Return the pose covariance caused by a voxel lattice of ``pitch`` under the surfaces.
+def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivity: np.ndarray,
+                             pitch: float) -> np.ndarray:
+    """Return the (6, 6) score covariance ``pitch^2 / 12 V^T V`` of a lattice's quantisation.
 
     Model: a surface stored as voxel centres (an octree map) is off the true surface by an
-    offset delta_p along its normal that is common to the whole plane p (a plane parallel to
-    the lattice keeps the same phase everywhere) and uniform over one voxel, variance
-    pitch^2 / 12, independent between planes. The offsets move the estimate by
-    ``A^-1 sum_p v_p delta_p``, v_p the plane's summed score sensitivity, so they add
-    ``pitch^2 / 12 A^-1 V V^T A^-1``. Planes tilted against the lattice average their phase
-    out along the plane, so for them this is an upper bound.
+    offset along its normal, uniform over one voxel (variance pitch^2 / 12) and common to a
+    whole plane (:func:`plane_groups`, offsets binned by 3 pitches): a plane parallel to the
+    lattice keeps one phase everywhere. Offsets of different planes are independent. They
+    move the estimate by ``A^-1 sum_p v_p delta_p`` (v_p the plane's summed score
+    sensitivity), so the pose covariance gains ``pitch^2 / 12 A^-1 V^T V A^-1``. A plane
+    tilted against the lattice crosses many layers whose offsets largely cancel along it,
+    so for such planes this is an upper bound (pessimistic; docs/registration.md).
     """
-    group, sign = plane_groups(sol.normals, sol.tgt, 3.0 * pitch)
+    group, sign = plane_groups(normals, points, 3.0 * pitch)
     V = np.zeros((int(group.max()) + 1, 6))
-    np.add.at(V, group, sign[:, None] * sol.sensitivity)
-    cov = pitch ** 2 / 12.0 * A_inv @ (V.T @ V) @ A_inv
-    return 0.5 * (cov + cov.T)
+    np.add.at(V, group, sign[:, None] * sensitivity)
+    return pitch ** 2 / 12.0 * V.T @ V
 
 
 def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndarray:
