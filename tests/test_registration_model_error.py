@@ -76,3 +76,134 @@ def test_quantisation_can_be_given_or_switched_off():
     plain = Registration(source, target, RegistrationConfig(quantisation=None)).run()
     np.testing.assert_allclose(given.covariance - given.diagnostic.model_covariance,
                                plain.covariance, rtol=1e-6, atol=1e-11)
+
+
+# -- Monte Carlo -------------------------------------------------------------------------------
+N_TRIALS = 30
+
+
+def _mean_nees(errors, covs) -> float:
+    return float(np.mean(nees(np.array(errors), np.array(covs))))
+
+
+@pytest.mark.slow
+def test_room_views_quantisation_term_removes_most_of_the_overconfidence():
+    """The demo's calibration: each headset view to the robot's 3 cm octree map.
+
+    8 independent rooms x 4 views (small images to keep it quick), Semantic-ICP from a
+    random start 0.2 m / 5 deg around the truth. Every start ends at the same systematic
+    error, so the trials are the rooms and views. Measured mean NEES (rooms 100-107): about
+    16 with the quantisation term, about 640 without it (the point-noise sandwich alone).
+    The term does not reach the chi-square band (docs/registration.md: the fused map's
+    surfaces are further off than the quantisation alone explains); this test pins both the
+    gain and the remaining gap.
+    """
+    from perception.simulation.room import (
+        VIEWPOINTS,
+        RoomConfig,
+        build_room,
+        headset_cloud,
+        robot_semantic_map,
+    )
+    errors, covs, model = [], [], []
+    for seed in range(100, 108):
+        cfg = RoomConfig(seed=seed, image_width=96, image_height=72, focal=72.0)
+        room = build_room(cfg)
+        target = robot_semantic_map(room, cfg)
+        for k, view in enumerate(sorted(VIEWPOINTS)):
+            source, T_gt = headset_cloud(room, view, cfg)
+            rng = np.random.default_rng(seed * 10 + k)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
+            result = Registration(source.points, target.points,
+                                  RegistrationConfig(max_correspondence_distance=0.2),
+                                  source.probs, target.probs).run(init)
+            assert result.converged, result.reason
+            assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+            errors.append(pose_error(result.T, T_gt).tangent)
+            covs.append(result.covariance)
+            model.append(result.diagnostic.model_covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.mean < 3.0 * check.upper, check  # the remaining gap, at most 3x
+    # negative controls: the sandwich alone, and the reported covariance shrunk by 10
+    raw = _mean_nees(errors, np.array(covs) - np.array(model))
+    assert raw > 30.0 * check.upper, raw
+    assert _mean_nees(errors, np.array(covs) * 0.1) > 10.0 * check.upper
+
+
+def voxel_map_pair(seed: int, n_source: int = 6000, n_dense: int = 60000, pitch: float = 0.03,
+                   sigma_target: float = 0.01, sigma_source: float = 0.005):
+    """The test scene tilted against a 3 cm grid: a dense noisy sampling quantised to voxel
+    centres (the target, a robot map) and an independent sparse noisy source."""
+    from test_registration import corner_scene, random_pose
+
+    rng = np.random.default_rng(seed)
+    dense, _ = corner_scene(rng, n_dense)
+    tilt = random_pose(rng, 0.3, 0.0)[:3, :3]
+    dense = (dense + rng.normal(0, sigma_target, dense.shape)) @ tilt.T
+    target = (np.unique(np.floor(dense / pitch), axis=0) + 0.5) * pitch
+    T_gt = random_pose(rng)
+    world, _ = corner_scene(rng, n_source)
+    world = (world + rng.normal(0, sigma_source, world.shape)) @ tilt.T
+    return (world - T_gt[:3, 3]) @ T_gt[:3, :3], target, T_gt
+
+
+@pytest.mark.slow
+def test_dense_voxel_map_covariance_is_not_overconfident():
+    """A dense voxel map of planes tilted against its lattice: the term is an upper bound
+    there (the tilted planes' offsets cancel along them), so the mean NEES falls below the
+    band; without the term the sandwich alone is over-confident (negative control)."""
+    errors, covs, model = [], [], []
+    for seed in range(3000, 3000 + N_TRIALS):
+        source, target, T_gt = voxel_map_pair(seed)
+        result = Registration(source, target,
+                              RegistrationConfig(max_correspondence_distance=0.3)).run()
+        assert result.converged, result.reason
+        assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+        errors.append(pose_error(result.T, T_gt).tangent)
+        covs.append(result.covariance)
+        model.append(result.diagnostic.model_covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.mean <= check.upper, check
+    assert _mean_nees(errors, np.array(covs) - np.array(model)) > check.upper
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known gap: 3 cm point noise, mean NEES ~10.6 "
+                                       "(normal-estimation errors correlated beyond the blocks)")
+def test_sandwich_at_3cm_point_noise_is_consistent():
+    errors, covs = [], []
+    for seed in range(1000, 1000 + N_TRIALS):
+        source, _, target, _, T_gt = make_pair(seed, 2000, 0.03)
+        result = Registration(source, target,
+                              RegistrationConfig(max_correspondence_distance=0.3)).run()
+        errors.append(pose_error(result.T, T_gt).tangent)
+        covs.append(result.covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.passed, check
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known gap: real scan splits, mean NEES ~10.0")
+def test_real_scan_splits_covariance_is_consistent(shared_data):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.registration_real import scan_setting
+
+    errors, covs = [], []
+    for seed in range(100, 100 + N_TRIALS):
+        s = scan_setting(shared_data / "octomap", seed)
+        metres, degrees, d0 = s.offsets["small"]
+        init = s.T_gt @ offset_about_centroid(np.random.default_rng(seed),
+                                              s.source.points.mean(axis=0), metres, degrees)
+        config = RegistrationConfig(max_correspondence_distance=s.d_final,
+                                    initial_correspondence_distance=d0,
+                                    decay=s.d_final / d0, anneal="convergence")
+        result = Registration(s.source.points, s.target.points, config).run(init)
+        assert result.converged, result.reason
+        assert result.diagnostic.quantisation_pitch is None  # averaged voxels: no lattice
+        errors.append(pose_error(result.T, s.T_gt).tangent)
+        covs.append(result.covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.passed, check
