@@ -55,6 +55,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from estimation.covariance import nees  # noqa: E402
 from estimation.fileio import atomic_write  # noqa: E402
 from estimation.registration import Registration, RegistrationConfig, pose_error  # noqa: E402
 from estimation.registration.metrics import offset_about_centroid  # noqa: E402
@@ -91,8 +92,9 @@ def register_ours(src, tgt, init, stages, semantic=False, **options):
 
 
 def run_ours(src, tgt, init, stages, semantic, **options):
+    """Return (T, seconds, reported covariance) of ours."""
     result, seconds = register_ours(src, tgt, init, stages, semantic, **options)
-    return result.T, seconds
+    return result.T, seconds, result.covariance
 
 
 def run_open3d(src, tgt, init, stages, cauchy=1.0):
@@ -203,7 +205,8 @@ def main(argv=None) -> int:
         with open(args.from_json) as fh:
             saved = json.load(fh)
         rows = {(r["method"], r["label_accuracy"], r["offset"], r["n"]):
-                [(t["d_se3"], t["t_err_m"], t["r_err_rad"], t["time_s"]) for t in r["trials"]]
+                [(t["d_se3"], t["t_err_m"], t["r_err_rad"], t["time_s"],
+                  t.get("nees", float("nan"))) for t in r["trials"]]
                 for r in saved["rows"]}
         print(f"schedule {saved['schedule']}; {saved['trials']} trial(s) x "
               f"{len(saved['views'])} view(s) x {len(saved.get('seeds', [0]))} room seed(s) "
@@ -220,7 +223,8 @@ def main(argv=None) -> int:
     seeds = [int(x) for x in args.seeds.split(",")]
     methods = {m: METHODS[m] for m in args.methods.split(",")}
     load_start = os.getloadavg()
-    rows = defaultdict(list)  # (method, acc, offset, size) -> [(d, t_err, r_err, time)]
+    # (method, acc, offset, size) -> [(d, t_err, r_err, time, NEES or nan)]
+    rows = defaultdict(list)
     warm = False
     semantic_methods = [m for m in methods if m.startswith("semantic-icp")]
     geometric = [m for m in methods if m not in semantic_methods]
@@ -256,11 +260,12 @@ def main(argv=None) -> int:
                         runs += [(m, acc, s_, t_) for m in semantic_methods
                                  for acc, (s_, t_) in zip(accuracies, clouds)]
                         for method, acc, s_, t_ in runs:
-                            T, seconds = methods[method](s_, t_, init, stages)
+                            T, seconds, *cov = methods[method](s_, t_, init, stages)
                             err = pose_error(T, T_gt)
+                            value = float(nees(err.tangent, cov[0])) if cov else float("nan")
                             for a in (accuracies if acc is None else (acc,)):
                                 rows[(method, a, offset, size)].append(
-                                    (err.d_se3, err.t_err_m, err.r_err_rad, seconds))
+                                    (err.d_se3, err.t_err_m, err.r_err_rad, seconds, value))
                             print(f"  {method} acc={'any' if acc is None else acc} {offset} "
                                   f"N={size} view={view} d={err.d_se3:.4f} t={seconds:.3f}s",
                                   file=sys.stderr, flush=True)
@@ -278,7 +283,7 @@ def main(argv=None) -> int:
                        "load_start": load_start, "load_end": load_end,
                        "rows": [{"method": m, "label_accuracy": a, "offset": o, "n": n,
                                  "trials": [dict(zip(("d_se3", "t_err_m", "r_err_rad",
-                                                      "time_s"), t)) for t in v]}
+                                                      "time_s", "nees"), t)) for t in v]}
                                 for (m, a, o, n), v in rows.items()]}, fh, indent=1)
     return 0
 
@@ -304,12 +309,14 @@ def report(rows, accuracies, sizes, methods, trials: int = 1) -> None:
     "paired" is the median over trials of d_SE3 / d_SE3(open3d) of the same trial (same
     clouds and initial guess): less sensitive than the ratio of medians to which local
     minimum each method lands in. "95 % CI" is the bootstrap interval of the ratio of
-    medians over data sets (room x view; :func:`ratio_interval`).
+    medians over data sets (room x view; :func:`ratio_interval`). "NEES" is the mean (and
+    median) NEES of ours against its reported covariance over the cell's registrations
+    (6 dof; trials of one room and view share their clouds, so they are not independent).
     """
     print("| method | label acc | offset | N | success | median d_SE3 | median t_err m | "
           "median r_err deg | median time s | time / open3d | d_SE3 / open3d | "
-          "95 % CI | paired d_SE3 / open3d | d_SE3 / open3d-c2 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "95 % CI | paired d_SE3 / open3d | d_SE3 / open3d-c2 | NEES mean (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for offset in OFFSETS:
         for size in sizes:
             for acc in accuracies:
@@ -332,11 +339,14 @@ def report(rows, accuracies, sizes, methods, trials: int = 1) -> None:
                         paired = f"{np.median(data[:, 0] / ref[:, 0]):.2f}"
                         lo, hi = ratio_interval(data[:, 0], ref[:, 0], trials)
                         interval = f"{lo:.2f}-{hi:.2f}"
+                    values = data[:, 4] if data.shape[1] > 4 else np.array([np.nan])
+                    consistency = "-" if np.all(np.isnan(values)) else \
+                        f"{np.mean(values):.3g} ({np.median(values):.3g})"
                     print(f"| {method} | {acc:.0%} | {offset} | {size} | {ok.mean():.0%} | "
                           f"{d:.4f} | {np.median(data[:, 1]):.4f} | "
                           f"{np.rad2deg(np.median(data[:, 2])):.2f} | "
                           f"{np.median(data[:, 3]):.3f} | {ratio(ref, 3)} | {ratio(ref, 0)} | "
-                          f"{interval} | {paired} | {ratio(ref2, 0)} |")
+                          f"{interval} | {paired} | {ratio(ref2, 0)} | {consistency} |")
 
 
 if __name__ == "__main__":
