@@ -665,7 +665,7 @@ class Registration:
             B_model = quantisation_information(sol.normals, tgt, sol.sensitivity, pitch)
         sandwich = cfg.covariance == "sandwich"
         scale = self._scale(src)
-        H_normal = self._normal_information(T, src, tgt, corr, w)
+        H_normal = self._normal_information(T, src, sol.normals, w)
         cov, unconstrained = covariance_from_information(
             sol.A if sandwich else sol.H, B + B_model if sandwich else None, scale,
             H_normal, cfg.degeneracy_ratio)
@@ -726,15 +726,14 @@ class Registration:
     def _scale(points: np.ndarray) -> float:
         return float(max(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))), 1e-3))
 
-    def _normal_information(self, T, src, tgt, corr, w) -> np.ndarray:
+    @staticmethod
+    def _normal_information(T, src, normals, w) -> np.ndarray:
         """Point-to-plane information: what the surfaces constrain (for degeneracy only).
 
         With the (epsilon, 1, 1) covariances even in-plane residuals carry weight 1/epsilon
         smaller, so the GICP Hessian of a single plane is merely ill-conditioned; projected on
         the target normals it is singular, which is the test we want.
         """
-        _, vecs = np.linalg.eigh(self.target_cov[corr.target_idx])
-        normals = vecs[:, :, 0]
         R = T[:3, :3]
         J = np.empty((len(src), 6))
         # n^T [R [x_s]_x, -R] = [((R^T n) x x_s)^T, -(R^T n)^T]; the sign does not matter here
@@ -758,8 +757,7 @@ def plane_groups(normals: np.ndarray, points: np.ndarray, thickness: float,
     n = normals * sign[:, None]
     offset = np.einsum("mi,mi->m", n, points)
     key = np.c_[np.round(n / angle_bin), np.round(offset / thickness)].astype(np.int64)
-    _, group = np.unique(key, axis=0, return_inverse=True)
-    return group.reshape(-1), sign
+    return _row_groups(key), sign
 
 
 def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivity: np.ndarray,
@@ -781,10 +779,27 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
     return pitch ** 2 / 12.0 * V.T @ V
 
 
+def _row_groups(keys: np.ndarray) -> np.ndarray:
+    """Return the group index (0..G-1) of each row of the (M, d) int64 ``keys``.
+
+    The rows are packed into one int64 (mixed radix over their ranges) so that a 1-D
+    ``np.unique`` does the grouping (``np.unique(axis=0)`` sorts a structured view, ~10x
+    slower); falls back to it when the ranges do not fit in 63 bits.
+    """
+    lo = keys.min(axis=0)
+    span = keys.max(axis=0) - lo + 1
+    if np.sum(np.log2(span.astype(float))) < 62:
+        radix = np.concatenate([np.cumprod(span[::-1])[::-1][1:], [1]])
+        packed = (keys - lo) @ radix
+        _, group = np.unique(packed, return_inverse=True)
+    else:
+        _, group = np.unique(keys, axis=0, return_inverse=True)
+    return group.reshape(-1)
+
+
 def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndarray:
     """Return ``values`` (M, d) summed over the cubic blocks of edge ``size`` holding ``points``."""
-    cells = np.floor(points / size).astype(np.int64)
-    _, block = np.unique(cells, axis=0, return_inverse=True)
+    block = _row_groups(np.floor(points / size).astype(np.int64))
     out = np.zeros((int(block.max()) + 1, values.shape[1]))
     np.add.at(out, block.reshape(-1), values)
     return out
