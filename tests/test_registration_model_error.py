@@ -92,8 +92,8 @@ def test_room_views_quantisation_term_removes_most_of_the_overconfidence():
 
     8 independent rooms x 4 views (small images to keep it quick), Semantic-ICP from a
     random start 0.2 m / 5 deg around the truth. Every start ends at the same systematic
-    error, so the trials are the rooms and views. Measured mean NEES (rooms 100-107): about
-    16 with the quantisation term, about 640 without it (the point-noise sandwich alone).
+    error, so the trials are the rooms and views. Measured mean NEES (rooms 100-107): 9.8
+    with the quantisation term, 650 without it (the point-noise sandwich alone).
     The term does not reach the chi-square band (docs/registration.md: the fused map's
     surfaces are further off than the quantisation alone explains); this test pins both the
     gain and the remaining gap.

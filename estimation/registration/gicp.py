@@ -743,20 +743,22 @@ class Registration:
         return (J * w[:, None]).T @ J
 
 
-def plane_groups(normals: np.ndarray, points: np.ndarray, thickness: float,
-                 angle_bin: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
-    """Return (group index (M,), sign (M,)): correspondences grouped by the plane they lie on.
+def plane_groups(normals: np.ndarray, points: np.ndarray, thickness: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Return (group index (M,), sign (M,)): correspondences grouped by lattice-aligned slab.
 
-    Normals are oriented so that their largest component is positive (``sign`` flips the
-    given ones); a group is one cell of (normal binned by ``angle_bin`` per component, offset
-    ``n . x`` binned by ``thickness``): the points of one plane share it, and so do coplanar
-    patches, which on a lattice share the quantisation offset too.
+    Each normal's dominant axis a (the lattice axis nearest to it) and the point's
+    coordinate along a, binned by ``thickness``, make the group: the points of one plane
+    parallel to the lattice share it (its coordinate along a is constant), and so do
+    coplanar patches, which share its quantisation offset too. (Binning the offset
+    ``n . x`` instead splits planes: normal noise times the distance from the origin moves
+    it by more than a voxel.) ``sign`` orients each normal so that its component along a
+    is positive.
     """
     big = np.argmax(np.abs(normals), axis=1)
     sign = np.where(normals[np.arange(len(normals)), big] < 0.0, -1.0, 1.0)
-    n = normals * sign[:, None]
-    offset = np.einsum("mi,mi->m", n, points)
-    key = np.c_[np.round(n / angle_bin), np.round(offset / thickness)].astype(np.int64)
+    offset = points[np.arange(len(points)), big]
+    key = np.c_[big, np.round(offset / thickness)].astype(np.int64)
     return _row_groups(key), sign
 
 
@@ -766,12 +768,13 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
 
     Model: a surface stored as voxel centres (an octree map) is off the true surface by an
     offset along its normal, uniform over one voxel (variance pitch^2 / 12) and common to a
-    whole plane (:func:`plane_groups`, offsets binned by 3 pitches): a plane parallel to the
+    whole plane (:func:`plane_groups`, slabs 3 pitches thick): a plane parallel to the
     lattice keeps one phase everywhere. Offsets of different planes are independent. They
     move the estimate by ``A^-1 sum_p v_p delta_p`` (v_p the plane's summed score
     sensitivity), so the pose covariance gains ``pitch^2 / 12 A^-1 V^T V A^-1``. A plane
     tilted against the lattice crosses many layers whose offsets largely cancel along it,
-    so for such planes this is an upper bound (pessimistic; docs/registration.md).
+    but falls into one group per slab here: for such planes this is an upper bound
+    (pessimistic; docs/registration.md).
     """
     group, sign = plane_groups(normals, points, 3.0 * pitch)
     V = np.zeros((int(group.max()) + 1, 6))
