@@ -169,6 +169,54 @@ def factor_ablation(n: int = 10000) -> None:
           f"(ratio {t_single / t_batched:.0f}x)")
 
 
+START_UP_PROBE = """
+import sys, time
+sys.path.insert(0, {root!r})
+t0 = time.perf_counter()
+import numpy as np
+from estimation.registration import Registration, RegistrationConfig
+t1 = time.perf_counter()
+rng = np.random.default_rng(0)
+n = 10000
+pts = np.c_[rng.uniform(0, 4, n), rng.uniform(0, 4, n), np.zeros(n)]
+pts[: n // 2, 2] = pts[: n // 2, 0] * 0.3
+pts[n // 4: n // 2, 2] += np.sin(pts[n // 4: n // 2, 1])
+tgt = pts + rng.normal(0, 0.005, pts.shape)
+src = pts[rng.permutation(n)] + rng.normal(0, 0.005, pts.shape)
+times = []
+for _ in range(3):
+    t = time.perf_counter()
+    Registration(src, tgt, RegistrationConfig()).run()
+    times.append(time.perf_counter() - t)
+print(t1 - t0, times[0], min(times[1:]))
+"""
+
+
+def start_up(repeats: int = 5) -> None:
+    """Print the first-call and warm-call times of a 10k-point registration in new processes.
+
+    Each repeat starts a fresh interpreter that imports the package, then registers the same
+    synthetic pair three times: "first" is the first call (numba loads its cached kernels
+    there), "warm" the faster of the other two. Medians and ranges over ``repeats``.
+    """
+    import subprocess
+
+    root = str(Path(__file__).resolve().parents[1])
+    rows = []
+    for _ in range(repeats):
+        out = subprocess.run([sys.executable, "-c", START_UP_PROBE.format(root=root)],
+                             capture_output=True, text=True, check=True)
+        rows.append([float(v) for v in out.stdout.split()])
+    rows = np.array(rows)
+    ratio = rows[:, 1] / rows[:, 2]
+    print(f"start-up over {repeats} new processes (median, min-max): import "
+          f"{np.median(rows[:, 0]):.3f} s ({rows[:, 0].min():.3f}-{rows[:, 0].max():.3f}); "
+          f"first call {np.median(rows[:, 1]):.3f} s ({rows[:, 1].min():.3f}-"
+          f"{rows[:, 1].max():.3f}); warm call {np.median(rows[:, 2]):.3f} s "
+          f"({rows[:, 2].min():.3f}-{rows[:, 2].max():.3f}); first / warm "
+          f"{np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f})")
+
+
 def _median_time(fn, repeats):
     times = []
     for _ in range(repeats):
@@ -197,9 +245,14 @@ def main(argv=None) -> int:
     parser.add_argument("--from-json", metavar="PATH",
                         help="print the table of a run saved with --json (runs nothing)")
     parser.add_argument("--factor-ablation", action="store_true")
+    parser.add_argument("--start-up", type=int, metavar="N", default=0,
+                        help="only time the first vs a warm registration in N new processes")
     args = parser.parse_args(argv)
     if args.factor_ablation:
         factor_ablation()
+        return 0
+    if args.start_up:
+        start_up(args.start_up)
         return 0
     if args.from_json:
         with open(args.from_json) as fh:
