@@ -55,6 +55,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from estimation.covariance import nees  # noqa: E402
 from estimation.fileio import atomic_write  # noqa: E402
 from estimation.registration import Registration, RegistrationConfig, pose_error  # noqa: E402
 from estimation.registration.metrics import offset_about_centroid  # noqa: E402
@@ -91,8 +92,9 @@ def register_ours(src, tgt, init, stages, semantic=False, **options):
 
 
 def run_ours(src, tgt, init, stages, semantic, **options):
+    """Return (T, seconds, reported covariance) of ours."""
     result, seconds = register_ours(src, tgt, init, stages, semantic, **options)
-    return result.T, seconds
+    return result.T, seconds, result.covariance
 
 
 def run_open3d(src, tgt, init, stages, cauchy=1.0):
@@ -167,6 +169,54 @@ def factor_ablation(n: int = 10000) -> None:
           f"(ratio {t_single / t_batched:.0f}x)")
 
 
+START_UP_PROBE = """
+import sys, time
+sys.path.insert(0, {root!r})
+t0 = time.perf_counter()
+import numpy as np
+from estimation.registration import Registration, RegistrationConfig
+t1 = time.perf_counter()
+rng = np.random.default_rng(0)
+n = 10000
+pts = np.c_[rng.uniform(0, 4, n), rng.uniform(0, 4, n), np.zeros(n)]
+pts[: n // 2, 2] = pts[: n // 2, 0] * 0.3
+pts[n // 4: n // 2, 2] += np.sin(pts[n // 4: n // 2, 1])
+tgt = pts + rng.normal(0, 0.005, pts.shape)
+src = pts[rng.permutation(n)] + rng.normal(0, 0.005, pts.shape)
+times = []
+for _ in range(3):
+    t = time.perf_counter()
+    Registration(src, tgt, RegistrationConfig()).run()
+    times.append(time.perf_counter() - t)
+print(t1 - t0, times[0], min(times[1:]))
+"""
+
+
+def start_up(repeats: int = 5) -> None:
+    """Print the first-call and warm-call times of a 10k-point registration in new processes.
+
+    Each repeat starts a fresh interpreter that imports the package, then registers the same
+    synthetic pair three times: "first" is the first call (numba loads its cached kernels
+    there), "warm" the faster of the other two. Medians and ranges over ``repeats``.
+    """
+    import subprocess
+
+    root = str(Path(__file__).resolve().parents[1])
+    rows = []
+    for _ in range(repeats):
+        out = subprocess.run([sys.executable, "-c", START_UP_PROBE.format(root=root)],
+                             capture_output=True, text=True, check=True)
+        rows.append([float(v) for v in out.stdout.split()])
+    rows = np.array(rows)
+    ratio = rows[:, 1] / rows[:, 2]
+    print(f"start-up over {repeats} new processes (median, min-max): import "
+          f"{np.median(rows[:, 0]):.3f} s ({rows[:, 0].min():.3f}-{rows[:, 0].max():.3f}); "
+          f"first call {np.median(rows[:, 1]):.3f} s ({rows[:, 1].min():.3f}-"
+          f"{rows[:, 1].max():.3f}); warm call {np.median(rows[:, 2]):.3f} s "
+          f"({rows[:, 2].min():.3f}-{rows[:, 2].max():.3f}); first / warm "
+          f"{np.median(ratio):.2f} ({ratio.min():.2f}-{ratio.max():.2f})")
+
+
 def _median_time(fn, repeats):
     times = []
     for _ in range(repeats):
@@ -195,15 +245,21 @@ def main(argv=None) -> int:
     parser.add_argument("--from-json", metavar="PATH",
                         help="print the table of a run saved with --json (runs nothing)")
     parser.add_argument("--factor-ablation", action="store_true")
+    parser.add_argument("--start-up", type=int, metavar="N", default=0,
+                        help="only time the first vs a warm registration in N new processes")
     args = parser.parse_args(argv)
     if args.factor_ablation:
         factor_ablation()
+        return 0
+    if args.start_up:
+        start_up(args.start_up)
         return 0
     if args.from_json:
         with open(args.from_json) as fh:
             saved = json.load(fh)
         rows = {(r["method"], r["label_accuracy"], r["offset"], r["n"]):
-                [(t["d_se3"], t["t_err_m"], t["r_err_rad"], t["time_s"]) for t in r["trials"]]
+                [(t["d_se3"], t["t_err_m"], t["r_err_rad"], t["time_s"],
+                  t.get("nees", float("nan"))) for t in r["trials"]]
                 for r in saved["rows"]}
         print(f"schedule {saved['schedule']}; {saved['trials']} trial(s) x "
               f"{len(saved['views'])} view(s) x {len(saved.get('seeds', [0]))} room seed(s) "
@@ -220,7 +276,8 @@ def main(argv=None) -> int:
     seeds = [int(x) for x in args.seeds.split(",")]
     methods = {m: METHODS[m] for m in args.methods.split(",")}
     load_start = os.getloadavg()
-    rows = defaultdict(list)  # (method, acc, offset, size) -> [(d, t_err, r_err, time)]
+    # (method, acc, offset, size) -> [(d, t_err, r_err, time, NEES or nan)]
+    rows = defaultdict(list)
     warm = False
     semantic_methods = [m for m in methods if m.startswith("semantic-icp")]
     geometric = [m for m in methods if m not in semantic_methods]
@@ -256,11 +313,12 @@ def main(argv=None) -> int:
                         runs += [(m, acc, s_, t_) for m in semantic_methods
                                  for acc, (s_, t_) in zip(accuracies, clouds)]
                         for method, acc, s_, t_ in runs:
-                            T, seconds = methods[method](s_, t_, init, stages)
+                            T, seconds, *cov = methods[method](s_, t_, init, stages)
                             err = pose_error(T, T_gt)
+                            value = float(nees(err.tangent, cov[0])) if cov else float("nan")
                             for a in (accuracies if acc is None else (acc,)):
                                 rows[(method, a, offset, size)].append(
-                                    (err.d_se3, err.t_err_m, err.r_err_rad, seconds))
+                                    (err.d_se3, err.t_err_m, err.r_err_rad, seconds, value))
                             print(f"  {method} acc={'any' if acc is None else acc} {offset} "
                                   f"N={size} view={view} d={err.d_se3:.4f} t={seconds:.3f}s",
                                   file=sys.stderr, flush=True)
@@ -278,7 +336,7 @@ def main(argv=None) -> int:
                        "load_start": load_start, "load_end": load_end,
                        "rows": [{"method": m, "label_accuracy": a, "offset": o, "n": n,
                                  "trials": [dict(zip(("d_se3", "t_err_m", "r_err_rad",
-                                                      "time_s"), t)) for t in v]}
+                                                      "time_s", "nees"), t)) for t in v]}
                                 for (m, a, o, n), v in rows.items()]}, fh, indent=1)
     return 0
 
@@ -304,12 +362,14 @@ def report(rows, accuracies, sizes, methods, trials: int = 1) -> None:
     "paired" is the median over trials of d_SE3 / d_SE3(open3d) of the same trial (same
     clouds and initial guess): less sensitive than the ratio of medians to which local
     minimum each method lands in. "95 % CI" is the bootstrap interval of the ratio of
-    medians over data sets (room x view; :func:`ratio_interval`).
+    medians over data sets (room x view; :func:`ratio_interval`). "NEES" is the mean (and
+    median) NEES of ours against its reported covariance over the cell's registrations
+    (6 dof; trials of one room and view share their clouds, so they are not independent).
     """
     print("| method | label acc | offset | N | success | median d_SE3 | median t_err m | "
           "median r_err deg | median time s | time / open3d | d_SE3 / open3d | "
-          "95 % CI | paired d_SE3 / open3d | d_SE3 / open3d-c2 |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "95 % CI | paired d_SE3 / open3d | d_SE3 / open3d-c2 | NEES mean (median) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for offset in OFFSETS:
         for size in sizes:
             for acc in accuracies:
@@ -332,11 +392,14 @@ def report(rows, accuracies, sizes, methods, trials: int = 1) -> None:
                         paired = f"{np.median(data[:, 0] / ref[:, 0]):.2f}"
                         lo, hi = ratio_interval(data[:, 0], ref[:, 0], trials)
                         interval = f"{lo:.2f}-{hi:.2f}"
+                    values = data[:, 4] if data.shape[1] > 4 else np.array([np.nan])
+                    consistency = "-" if np.all(np.isnan(values)) else \
+                        f"{np.mean(values):.3g} ({np.median(values):.3g})"
                     print(f"| {method} | {acc:.0%} | {offset} | {size} | {ok.mean():.0%} | "
                           f"{d:.4f} | {np.median(data[:, 1]):.4f} | "
                           f"{np.rad2deg(np.median(data[:, 2])):.2f} | "
                           f"{np.median(data[:, 3]):.3f} | {ratio(ref, 3)} | {ratio(ref, 0)} | "
-                          f"{interval} | {paired} | {ratio(ref2, 0)} |")
+                          f"{interval} | {paired} | {ratio(ref2, 0)} | {consistency} |")
 
 
 if __name__ == "__main__":

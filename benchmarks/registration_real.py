@@ -237,23 +237,28 @@ def split_nees(octomap_dir: Path, splits: int) -> dict:
     realisations either. Open3D (CauchyLoss 1.0) runs on the same inputs for a paired ratio.
     """
     values, d_ours, d_ref, errors, sigmas, reasons = [], [], [], [], [], []
+    t_ours, t_ref, trusted = [], [], []
     for seed in range(100, 100 + splits):
         s = scan_setting(octomap_dir, seed)
         metres, degrees, d0 = s.offsets["small"]
         init = s.T_gt @ offset_about_centroid(np.random.default_rng(seed),
                                               s.source.points.mean(axis=0), metres, degrees)
-        result, _ = run_ours(s.source, s.target, init, (d0, s.d_final))
+        result, seconds = run_ours(s.source, s.target, init, (d0, s.d_final))
+        t_ours.append(seconds)
+        trusted.append(bool(result.diagnostic is not None and result.diagnostic.trusted))
         err = pose_error(result.T, s.T_gt)
         values.append(float(nees(err.tangent, result.covariance)))
         d_ours.append(err.d_se3)
         errors.append(err.tangent)
         sigmas.append(np.sqrt(np.diag(result.covariance)))
         reasons.append(result.reason)
-        T_ref, _ = run_open3d(s.source, s.target, init, (d0, s.d_final))
+        T_ref, seconds = run_open3d(s.source, s.target, init, (d0, s.d_final))
+        t_ref.append(seconds)
         d_ref.append(pose_error(T_ref, s.T_gt).d_se3)
     return {"splits": splits, "nees": values, "d_se3": d_ours, "d_se3_open3d": d_ref,
             "rms_error": np.sqrt(np.mean(np.square(errors), axis=0)).tolist(),
-            "median_sigma": np.median(sigmas, axis=0).tolist(), "reasons": reasons}
+            "median_sigma": np.median(sigmas, axis=0).tolist(), "reasons": reasons,
+            "time_s": t_ours, "time_s_open3d": t_ref, "trusted": trusted}
 
 
 def report_split_nees(out: dict) -> None:
@@ -268,7 +273,11 @@ def report_split_nees(out: dict) -> None:
           f"[rx ry rz tx ty tz] {np.array2string(ratio, precision=2)}; median d_SE3 "
           f"{np.median(out['d_se3']):.5f} vs open3d {np.median(out['d_se3_open3d']):.5f} "
           f"(paired ratio {np.median(np.divide(out['d_se3'], out['d_se3_open3d'])):.2f}); "
-          f"converged {converged}/{len(values)}")
+          f"converged {converged}/{len(values)}; covariance flagged trusted "
+          f"{sum(out['trusted'])}/{len(values)}; median time {np.median(out['time_s']):.3f} s vs "
+          f"open3d {np.median(out['time_s_open3d']):.3f} s (ratio of medians "
+          f"{np.median(out['time_s']) / np.median(out['time_s_open3d']):.2f}, paired "
+          f"{np.median(np.divide(out['time_s'], out['time_s_open3d'])):.2f})")
 
 
 def _run(method, setting, init, stages):

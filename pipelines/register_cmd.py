@@ -4,8 +4,9 @@ order everywhere: the headset cloud is registered to the map).
 Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs work for
 ``--method gicp``), run GICP-SE(3) or Semantic-ICP and write RESULT.json with T
 (T_target_source, 4x4), covariance (6x6, [rotation, translation]), converged, reason,
-iterations, inliers, fitness, rmse, time_s and, with --gt, d_se3 (eq. (9)), t_err_m, r_err_rad
-and nees.
+iterations, inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
+model-error share, correlation ratio, covariance_trusted) and, with --gt, d_se3 (eq. (9)),
+t_err_m, r_err_rad and nees.
 
 ``calibrate`` registers the headset cloud (source) to the robot's semantic map (target): the
 result is T_map_headset. ``--left-handed`` first converts the headset's left-handed frame
@@ -133,6 +134,13 @@ def _register(args, source, target, flip=None) -> dict:
         "cost_log": list(getattr(result, "cost_log", [])),
         "source_points": len(source), "target_points": len(target),
     }
+    diagnostic = getattr(result, "diagnostic", None)
+    if diagnostic is not None:
+        out["covariance_diagnostic"] = {
+            "quantisation_pitch_m": diagnostic.quantisation_pitch,
+            "model_error_share": diagnostic.model_error_share,
+            "correlation_ratio": diagnostic.correlation_ratio,
+            "covariance_trusted": bool(diagnostic.trusted)}
     if flip is not None:
         out["T_left_handed"] = (result.T @ flip).tolist()
     if args.gt:
@@ -194,6 +202,10 @@ def _summary(out: dict) -> str:
     if "d_se3" in out:
         text += (f"; d_SE(3)={out['d_se3']:.4f}, t_err={out['t_err_m']:.4f} m, "
                  f"r_err={out['r_err_rad']:.4f} rad")
+    diagnostic = out.get("covariance_diagnostic")
+    if diagnostic and not diagnostic["covariance_trusted"]:
+        text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
+                 f"ratio {diagnostic['correlation_ratio']:.2f})")
     return text
 
 

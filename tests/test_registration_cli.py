@@ -37,6 +37,10 @@ def test_register_writes_result_with_errors(tmp_path):
         assert np.array(data["covariance"]).shape == (6, 6)
         assert data["d_se3"] < 0.01 and data["t_err_m"] < 0.005 and data["r_err_rad"] < 0.002
         assert data["time_s"] > 0 and data["iterations"] >= 1
+        diagnostic = data["covariance_diagnostic"]
+        assert diagnostic["quantisation_pitch_m"] is None  # measured-like clouds: no lattice
+        assert isinstance(diagnostic["covariance_trusted"], bool)
+        assert diagnostic["correlation_ratio"] > 0 and diagnostic["model_error_share"] == 0
 
 
 def test_register_bad_input_exits_2(tmp_path, capsys):

@@ -110,6 +110,13 @@ class RegistrationConfig:
         1 cm with the means; docs/registration.md)
     surface_min_points : fewer points than this within ``surface_radius`` -> the sample itself
         (sparse clouds are left unchanged)
+    quantisation : pitch (m) of a voxel lattice under either cloud, whose quantisation
+        offsets (pitch^2 / 12 per plane, :func:`quantisation_covariance`) are added to the
+        covariance as model error; "auto" (default) = the pitch found by
+        :func:`.correspondences.lattice_pitch` (target first), None = no such term
+    trust_ratio : the covariance is flagged untrusted when the cluster sandwich with blocks
+        four times wider exceeds the reported covariance by more than this (mean variance
+        ratio; :class:`CovarianceDiagnostic`)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
         choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise;
@@ -141,6 +148,8 @@ class RegistrationConfig:
     coarse_points: int | None = 3000
     surface_radius: float | str | None = "auto"
     surface_min_points: int = 6
+    quantisation: float | str | None = "auto"
+    trust_ratio: float = 4.0
 
     def __post_init__(self):
         if self.max_correspondence_distance <= 0:
@@ -162,10 +171,39 @@ class RegistrationConfig:
                                   f"got {self.semantic_estep!r}")
         if self.covariance not in ("sandwich", "hessian"):
             raise EstimationError("covariance must be 'sandwich' or 'hessian'")
+        if self.quantisation is not None and self.quantisation != "auto" and not (
+                isinstance(self.quantisation, (int, float)) and self.quantisation > 0):
+            raise EstimationError(f"quantisation must be positive, 'auto' or None, "
+                                  f"got {self.quantisation!r}")
         if self.surface_radius is not None and self.surface_radius != "auto" and not (
                 isinstance(self.surface_radius, (int, float)) and self.surface_radius > 0):
             raise EstimationError(f"surface_radius must be positive, 'auto' or None, "
                                   f"got {self.surface_radius!r}")
+
+
+@dataclass(frozen=True)
+class CovarianceDiagnostic:
+    """How far the reported covariance can be trusted (see docs/registration.md).
+
+    Attributes
+    ----------
+    quantisation_pitch : lattice pitch (m) whose quantisation term was added, or None
+    model_error_share : share of the covariance (trace, rotations scaled by the cloud
+        radius) that comes from that term
+    correlation_ratio : mean variance ratio, trace(P^-1 P_4) / 6, of the cluster sandwich
+        with blocks four times wider (P_4) against the reported P. Independent residuals
+        give about 2-3 (measured); much more means residuals correlated over distances the
+        blocks do not span (an unmodelled systematic error): the covariance is then too small
+    trusted : correlation_ratio <= RegistrationConfig.trust_ratio
+    model_covariance : (6, 6) the quantisation part of the reported covariance (zeros
+        without a lattice); ``covariance - model_covariance`` is the point-noise sandwich
+    """
+
+    quantisation_pitch: float | None
+    model_error_share: float
+    correlation_ratio: float
+    trusted: bool
+    model_covariance: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -187,6 +225,7 @@ class RegistrationResult:
     cost_log : robust cost at the start of every outer iteration
     method : "gicp" or "semantic"
     time_s : wall time
+    diagnostic : :class:`CovarianceDiagnostic` (None when the registration failed)
     """
 
     T: np.ndarray
@@ -201,6 +240,7 @@ class RegistrationResult:
     cost_log: tuple[float, ...] = field(default_factory=tuple)
     method: str = "gicp"
     time_s: float = 0.0
+    diagnostic: CovarianceDiagnostic | None = None
 
     @property
     def pose(self) -> gtsam.Pose3:
@@ -219,6 +259,36 @@ class RegistrationResult:
         if not self.converged:
             raise EstimationError(f"registration did not converge ({self.reason}); not added")
         pose_graph.add_between(target_id, source_id, self.pose, self.covariance, kind=kind)
+
+
+@dataclass(frozen=True)
+class SolutionTerms:
+    """What the covariance is computed from, at the solution.
+
+    Attributes
+    ----------
+    corr : the correspondences
+    src, tgt : (M, 3) matched source (source frame) and target positions
+    w : (M,) robust weights omega_k rho'(e_k)
+    H : (6, 6) IRLS information sum w_k J_k^T J_k
+    A : (6, 6) exact Hessian of the robust cost (H plus the rho'' term)
+    scores : (M, 6) w_k J_k^T r_k, the per-correspondence gradient of the cost
+    normals : (M, 3) unit target surface normals (sign arbitrary)
+    normal_residuals : (M,) n_k . (x_t - T x_s) (m)
+    sensitivity : (M, 6) w_k J_k^T U_k^T n_k: the change of the score per metre of target
+        surface offset along n_k
+    """
+
+    corr: Correspondences
+    src: np.ndarray
+    tgt: np.ndarray
+    w: np.ndarray
+    H: np.ndarray
+    A: np.ndarray
+    scores: np.ndarray
+    normals: np.ndarray
+    normal_residuals: np.ndarray
+    sensitivity: np.ndarray
 
 
 def _as_points(points: np.ndarray, what: str) -> np.ndarray:
@@ -279,6 +349,8 @@ class Registration:
         self._block: float | None = None
         self._cache: NeighbourCache | None = None
         self._surface_radius: float | str | None = "unset"
+        self._pitch: float | str | None = "unset"
+        self._found_pitch: float | str | None = "unset"
         self._source_pos: np.ndarray | None = None
         self._target_lazy: LazyCovariances | None = None
         self._class_cache: dict = {}
@@ -361,8 +433,7 @@ class Registration:
         if self._surface_radius == "unset":
             radius = self.config.surface_radius
             if radius == "auto":
-                pitch = lattice_pitch(self.target, self.target_tree) or lattice_pitch(
-                    self.source)
+                pitch = self._lattice
                 radius = None if pitch is None else float(np.sqrt(3.0) * pitch)
                 if radius is not None and not (self._dense_share(self.target, radius) >= 0.1
                                                or self._dense_share(self.source, radius) >= 0.1):
@@ -544,12 +615,11 @@ class Registration:
             T_prev, T = T, T_new
         return self._finish(T, d_final, converged, reason, iterations, cost_log, start)
 
-    def _finish(self, T, d_max, converged, reason, iterations, cost_log, start):
-        cfg = self.config
+    def solution_terms(self, T: np.ndarray, d_max: float) -> SolutionTerms | None:
+        """Return the correspondences, scores and Hessians at ``T`` (None if too few)."""
         corr = self.correspondences(T, d_max)
-        if len(corr) < cfg.min_inliers:
-            return self._failed(T, f"only {len(corr)} correspondences at the solution",
-                                start, iterations, cost_log)
+        if len(corr) < self.config.min_inliers:
+            return None
         src, tgt = self.matched_points(corr)
         Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
                        T[:3, :3])
@@ -558,30 +628,87 @@ class Registration:
         Jflat = (terms.jacobians * np.sqrt(w)[:, None, None]).reshape(-1, 6)
         H = Jflat.T @ Jflat
         g = (np.swapaxes(terms.jacobians, 1, 2) @ terms.residuals[:, :, None])[:, :, 0]
-        # M-estimator sandwich A^-1 B A^-1: A the exact Hessian of the robust cost (with the
-        # rho'' term), B the outer product of the scores w_k g_k summed per spatial block
-        # (cluster-robust: neighbouring residuals share target points and the neighbourhoods
-        # their covariances came from; blocks 0.75 neighbourhood radius wide were calibrated in
-        # the Monte Carlo check, tests/test_registration_covariance.py)
+        # the exact Hessian of the robust cost (with the rho'' term, which IRLS drops)
         c = self._curvature(terms.mahalanobis, corr.weights)
         A = H + (g * c[:, None]).T @ g
         if np.linalg.eigvalsh(A).min() <= 1e-9 * np.abs(np.linalg.eigvalsh(H)).max():
             A = H  # too many residuals beyond the kernel's inflection: fall back to IRLS
-        clustered = cluster_sums(tgt, w[:, None] * g, self.cluster_size(T, corr))
+        # the target covariance is I - (1 - epsilon) n n^T: its normal is the column of
+        # (I - C) with the largest diagonal, normalised
+        D = np.eye(3) - self.target_cov[corr.target_idx]
+        col = np.argmax(np.einsum("mii->mi", D), axis=1)
+        normals = D[np.arange(len(D)), :, col]
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        r = tgt - transform_points(T, src)
+        rn = np.einsum("mi,mi->m", normals, r)
+        Un = np.einsum("mij,mj->mi", Ut, normals)
+        sens = w[:, None] * np.einsum("mij,mi->mj", terms.jacobians, Un)
+        return SolutionTerms(corr, src, tgt, w, H, A, w[:, None] * g, normals, rn, sens)
+
+    def _finish(self, T, d_max, converged, reason, iterations, cost_log, start):
+        cfg = self.config
+        sol = self.solution_terms(T, d_max)
+        if sol is None:
+            return self._failed(T, "too few correspondences at the solution",
+                                start, iterations, cost_log)
+        corr, src, tgt, w = sol.corr, sol.src, sol.tgt, sol.w
+        # M-estimator sandwich A^-1 B A^-1: A the exact Hessian of the robust cost, B the
+        # outer product of the scores summed per spatial block (cluster-robust: neighbouring
+        # residuals share target points and the neighbourhoods their covariances came from)
+        block = self.cluster_size(T, corr)
+        clustered = cluster_sums(tgt, sol.scores, block)
         B = clustered.T @ clustered
+        # model error: a voxel lattice's quantisation offsets, common to whole planes
+        pitch = self.quantisation_pitch
+        B_model = np.zeros((6, 6))
+        if pitch is not None:
+            B_model = quantisation_information(sol.normals, tgt, sol.sensitivity, pitch)
         sandwich = cfg.covariance == "sandwich"
+        scale = self._scale(src)
+        H_normal = self._normal_information(T, src, sol.normals, w)
         cov, unconstrained = covariance_from_information(
-            A if sandwich else H, B if sandwich else None, self._scale(src),
-            self._normal_information(T, src, tgt, corr, w), cfg.degeneracy_ratio)
+            sol.A if sandwich else sol.H, B + B_model if sandwich else None, scale,
+            H_normal, cfg.degeneracy_ratio)
+        diagnostic = None
+        if sandwich:
+            wide = cluster_sums(tgt, sol.scores, 4.0 * block)
+            cov_wide, _ = covariance_from_information(sol.A, wide.T @ wide + B_model, scale,
+                                                      H_normal, cfg.degeneracy_ratio)
+            cov_model, _ = covariance_from_information(sol.A, B_model, scale, H_normal,
+                                                       cfg.degeneracy_ratio)
+            S2 = np.array([scale ** 2] * 3 + [1.0] * 3)
+            share = float(np.trace(cov_model * S2[:, None]) / np.trace(cov * S2[:, None])) \
+                if pitch is not None and not unconstrained else 0.0
+            ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
+            if pitch is None:
+                cov_model = np.zeros((6, 6))
+            diagnostic = CovarianceDiagnostic(pitch, share, ratio, ratio <= cfg.trust_ratio,
+                                              cov_model)
         inliers = len(corr)
         if unconstrained:
             converged = False
             reason = f"degenerate geometry: {unconstrained} unconstrained direction(s)"
         dist = np.linalg.norm(tgt - transform_points(T, src), axis=1)
         return RegistrationResult(
-            T, cov, H, iterations, inliers, inliers / len(self.source),
+            T, cov, sol.H, iterations, inliers, inliers / len(self.source),
             float(np.sqrt(np.mean(dist ** 2))), converged, reason, tuple(cost_log),
-            self.method, time.perf_counter() - start)
+            self.method, time.perf_counter() - start, diagnostic)
+
+    @property
+    def quantisation_pitch(self) -> float | None:
+        """Pitch (m) of the voxel lattice whose quantisation enters the covariance, or None."""
+        if self._pitch == "unset":
+            q = self.config.quantisation
+            self._pitch = self._lattice if q == "auto" else q
+        return self._pitch
+
+    @property
+    def _lattice(self) -> float | None:
+        """The voxel lattice pitch found in the target (else the source), or None (cached)."""
+        if self._found_pitch == "unset":
+            self._found_pitch = lattice_pitch(self.target, self.target_tree) or lattice_pitch(
+                self.source)
+        return self._found_pitch
 
     def cluster_size(self, T, corr) -> float:
         """Edge (m) of the blocks of the cluster-robust sandwich."""
@@ -599,15 +726,14 @@ class Registration:
     def _scale(points: np.ndarray) -> float:
         return float(max(np.sqrt(np.mean(np.sum((points - points.mean(0)) ** 2, axis=1))), 1e-3))
 
-    def _normal_information(self, T, src, tgt, corr, w) -> np.ndarray:
+    @staticmethod
+    def _normal_information(T, src, normals, w) -> np.ndarray:
         """Point-to-plane information: what the surfaces constrain (for degeneracy only).
 
         With the (epsilon, 1, 1) covariances even in-plane residuals carry weight 1/epsilon
         smaller, so the GICP Hessian of a single plane is merely ill-conditioned; projected on
         the target normals it is singular, which is the test we want.
         """
-        _, vecs = np.linalg.eigh(self.target_cov[corr.target_idx])
-        normals = vecs[:, :, 0]
         R = T[:3, :3]
         J = np.empty((len(src), 6))
         # n^T [R [x_s]_x, -R] = [((R^T n) x x_s)^T, -(R^T n)^T]; the sign does not matter here
@@ -617,10 +743,66 @@ class Registration:
         return (J * w[:, None]).T @ J
 
 
+def plane_groups(normals: np.ndarray, points: np.ndarray, thickness: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Return (group index (M,), sign (M,)): correspondences grouped by lattice-aligned slab.
+
+    Each normal's dominant axis a (the lattice axis nearest to it) and the point's
+    coordinate along a, binned by ``thickness``, make the group: the points of one plane
+    parallel to the lattice share it (its coordinate along a is constant), and so do
+    coplanar patches, which share its quantisation offset too. (Binning the offset
+    ``n . x`` instead splits planes: normal noise times the distance from the origin moves
+    it by more than a voxel.) ``sign`` orients each normal so that its component along a
+    is positive.
+    """
+    big = np.argmax(np.abs(normals), axis=1)
+    sign = np.where(normals[np.arange(len(normals)), big] < 0.0, -1.0, 1.0)
+    offset = points[np.arange(len(points)), big]
+    key = np.c_[big, np.round(offset / thickness)].astype(np.int64)
+    return _row_groups(key), sign
+
+
+def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivity: np.ndarray,
+                             pitch: float) -> np.ndarray:
+    """Return the (6, 6) score covariance ``pitch^2 / 12 V^T V`` of a lattice's quantisation.
+
+    Model: a surface stored as voxel centres (an octree map) is off the true surface by an
+    offset along its normal, uniform over one voxel (variance pitch^2 / 12) and common to a
+    whole plane (:func:`plane_groups`, slabs 3 pitches thick): a plane parallel to the
+    lattice keeps one phase everywhere. Offsets of different planes are independent. They
+    move the estimate by ``A^-1 sum_p v_p delta_p`` (v_p the plane's summed score
+    sensitivity), so the pose covariance gains ``pitch^2 / 12 A^-1 V^T V A^-1``. A plane
+    tilted against the lattice crosses many layers whose offsets largely cancel along it,
+    but falls into one group per slab here: for such planes this is an upper bound
+    (pessimistic; docs/registration.md).
+    """
+    group, sign = plane_groups(normals, points, 3.0 * pitch)
+    V = np.zeros((int(group.max()) + 1, 6))
+    np.add.at(V, group, sign[:, None] * sensitivity)
+    return pitch ** 2 / 12.0 * V.T @ V
+
+
+def _row_groups(keys: np.ndarray) -> np.ndarray:
+    """Return the group index (0..G-1) of each row of the (M, d) int64 ``keys``.
+
+    The rows are packed into one int64 (mixed radix over their ranges) so that a 1-D
+    ``np.unique`` does the grouping (``np.unique(axis=0)`` sorts a structured view, ~10x
+    slower); falls back to it when the ranges do not fit in 63 bits.
+    """
+    lo = keys.min(axis=0)
+    span = keys.max(axis=0) - lo + 1
+    if np.sum(np.log2(span.astype(float))) < 62:
+        radix = np.concatenate([np.cumprod(span[::-1])[::-1][1:], [1]])
+        packed = (keys - lo) @ radix
+        _, group = np.unique(packed, return_inverse=True)
+    else:
+        _, group = np.unique(keys, axis=0, return_inverse=True)
+    return group.reshape(-1)
+
+
 def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndarray:
     """Return ``values`` (M, d) summed over the cubic blocks of edge ``size`` holding ``points``."""
-    cells = np.floor(points / size).astype(np.int64)
-    _, block = np.unique(cells, axis=0, return_inverse=True)
+    block = _row_groups(np.floor(points / size).astype(np.int64))
     out = np.zeros((int(block.max()) + 1, values.shape[1]))
     np.add.at(out, block.reshape(-1), values)
     return out

@@ -1,0 +1,240 @@
+"""Model error in the registration covariance: a voxel map's quantisation, and the diagnostic.
+
+The i.i.d. point-noise sandwich (tests/test_registration_covariance.py) says nothing about
+errors shared by whole surfaces. A robot's octree map stores surfaces as voxel centres, off
+the true surface by up to half a voxel along the normal, the same offset for a whole plane
+parallel to the lattice; the registration error is then systematic and the sandwich alone
+was 100-1000x over-confident on the demo room (docs/registration.md). These tests check the
+quantisation term (:func:`quantisation_information`) piece by piece and in Monte Carlo runs
+on the room simulator, with controls that must fail.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_registration import make_pair
+
+from estimation.covariance import check_consistency, nees
+from estimation.errors import EstimationError
+from estimation.registration import Registration, RegistrationConfig, pose_error
+from estimation.registration.gicp import plane_groups, quantisation_information
+from estimation.registration.metrics import offset_about_centroid
+
+
+# -- building blocks -------------------------------------------------------------------------
+def test_plane_groups_split_planes_and_orient_normals(rng):
+    pitch = 0.03
+    floor = np.c_[rng.uniform(0, 2, (200, 2)), rng.normal(0.015, 0.005, 200)]
+    shelf = np.c_[rng.uniform(0, 2, (100, 2)), np.full(100, 0.315)]  # parallel, 30 cm up
+    wall = np.c_[np.full(150, 0.015), rng.uniform(0, 2, (150, 2))]
+    points = np.vstack([floor, shelf, wall])
+    normals = np.vstack([np.tile([0, 0, 1.0], (300, 1)), np.tile([-1.0, 0, 0], (150, 1))])
+    normals[::2] *= -1  # eigenvector signs are arbitrary
+    group, sign = plane_groups(normals, points, 3 * pitch)
+    assert len(np.unique(group[:200])) == 1 and len(np.unique(group[200:300])) == 1
+    assert len(np.unique(group[300:])) == 1
+    assert len({group[0], group[200], group[300]}) == 3
+    np.testing.assert_array_equal((normals * sign[:, None]).max(axis=1), 1.0)
+
+
+def test_quantisation_information_is_the_offset_variance_of_each_group(rng):
+    pitch = 0.05
+    points = np.c_[rng.uniform(0, 1, (50, 2)), np.zeros(50)]
+    normals = np.tile([0, 0, 1.0], (50, 1))
+    sens = rng.normal(size=(50, 6))
+    info = quantisation_information(normals, points, sens, pitch)
+    v = sens.sum(axis=0)  # one plane: one common offset
+    np.testing.assert_allclose(info, pitch ** 2 / 12 * np.outer(v, v), atol=1e-15)
+    # an offset delta moves every score by delta * sensitivity: the Monte Carlo variance of
+    # the summed score change equals the information
+    delta = rng.uniform(-pitch / 2, pitch / 2, 20000)
+    moved = delta[:, None] * v
+    np.testing.assert_allclose(np.cov(moved.T), info, rtol=0.05, atol=1e-6 * np.abs(info).max())
+
+
+def test_clouds_off_a_lattice_get_no_quantisation_term():
+    source, _, target, _, _ = make_pair(3, 1500, 0.005)
+    result = Registration(source, target, RegistrationConfig()).run()
+    assert result.converged
+    d = result.diagnostic
+    assert d.quantisation_pitch is None and d.model_error_share == 0.0
+    assert not d.model_covariance.any()
+
+
+def test_bad_quantisation_option_is_rejected():
+    with pytest.raises(EstimationError, match="quantisation"):
+        RegistrationConfig(quantisation=-0.03)
+    with pytest.raises(EstimationError, match="quantisation"):
+        RegistrationConfig(quantisation="big")
+
+
+def test_quantisation_can_be_given_or_switched_off():
+    source, _, target, _, _ = make_pair(4, 1500, 0.005)
+    given = Registration(source, target, RegistrationConfig(quantisation=0.03)).run()
+    assert given.diagnostic.quantisation_pitch == 0.03
+    assert given.diagnostic.model_error_share > 0.0
+    plain = Registration(source, target, RegistrationConfig(quantisation=None)).run()
+    np.testing.assert_allclose(given.covariance - given.diagnostic.model_covariance,
+                               plain.covariance, rtol=1e-6, atol=1e-11)
+
+
+# -- Monte Carlo -------------------------------------------------------------------------------
+N_TRIALS = 30
+
+
+def _mean_nees(errors, covs) -> float:
+    return float(np.mean(nees(np.array(errors), np.array(covs))))
+
+
+@pytest.mark.slow
+def test_room_views_covariance_is_consistent():
+    """The demo's calibration: each headset view to the robot's 3 cm octree map.
+
+    8 independent rooms x 4 views at the demo's resolution (``octofactor simulate room``
+    defaults), Semantic-ICP from a random start 0.2 m / 5 deg around the truth. Every start
+    ends at the same systematic error, so the trials are the rooms and views. Measured mean
+    NEES (rooms 100-107): 6.24 with the quantisation term, 26.8k without it (the
+    point-noise sandwich alone); held-out rooms 2-9: 6.41.
+    """
+    from perception.simulation.room import (
+        VIEWPOINTS,
+        RoomConfig,
+        build_room,
+        headset_cloud,
+        robot_semantic_map,
+    )
+    errors, covs, model = [], [], []
+    for seed in range(100, 108):
+        cfg = RoomConfig(seed=seed)
+        room = build_room(cfg)
+        target = robot_semantic_map(room, cfg)
+        for k, view in enumerate(sorted(VIEWPOINTS)):
+            source, T_gt = headset_cloud(room, view, cfg)
+            rng = np.random.default_rng(seed * 10 + k)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
+            result = Registration(source.points, target.points,
+                                  RegistrationConfig(max_correspondence_distance=0.2),
+                                  source.probs, target.probs).run(init)
+            assert result.converged, result.reason
+            assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+            errors.append(pose_error(result.T, T_gt).tangent)
+            covs.append(result.covariance)
+            model.append(result.diagnostic.model_covariance)
+    errors, covs = np.array(errors), np.array(covs)
+    check = check_consistency(nees(errors, covs), dof=6)
+    assert check.passed, check
+    # negative controls: the sandwich alone, and the reported covariance shrunk by 10
+    assert not check_consistency(nees(errors, covs - np.array(model)), dof=6).passed
+    assert not check_consistency(nees(errors, covs * 0.1), dof=6).passed
+
+
+@pytest.mark.slow
+def test_coarse_room_views_keep_a_bounded_gap():
+    """The same at 96x72 images (coarser headset clouds, 7k points): the term leaves the
+    covariance about 1.4x too small there (measured mean NEES 9.8, 650 without the term;
+    160x120: 9.6). Pins the gain and bounds the remaining gap."""
+    from perception.simulation.room import (
+        VIEWPOINTS,
+        RoomConfig,
+        build_room,
+        headset_cloud,
+        robot_semantic_map,
+    )
+    errors, covs, model = [], [], []
+    for seed in range(100, 108):
+        cfg = RoomConfig(seed=seed, image_width=96, image_height=72, focal=72.0)
+        room = build_room(cfg)
+        target = robot_semantic_map(room, cfg)
+        for k, view in enumerate(sorted(VIEWPOINTS)):
+            source, T_gt = headset_cloud(room, view, cfg)
+            rng = np.random.default_rng(seed * 10 + k)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
+            result = Registration(source.points, target.points,
+                                  RegistrationConfig(max_correspondence_distance=0.2),
+                                  source.probs, target.probs).run(init)
+            assert result.converged, result.reason
+            errors.append(pose_error(result.T, T_gt).tangent)
+            covs.append(result.covariance)
+            model.append(result.diagnostic.model_covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.mean < 2.0 * check.upper, check
+    assert _mean_nees(errors, np.array(covs) - np.array(model)) > 30.0 * check.upper
+
+
+def voxel_map_pair(seed: int, n_source: int = 6000, n_dense: int = 60000, pitch: float = 0.03,
+                   sigma_target: float = 0.01, sigma_source: float = 0.005):
+    """The test scene tilted against a 3 cm grid: a dense noisy sampling quantised to voxel
+    centres (the target, a robot map) and an independent sparse noisy source."""
+    from test_registration import corner_scene, random_pose
+
+    rng = np.random.default_rng(seed)
+    dense, _ = corner_scene(rng, n_dense)
+    tilt = random_pose(rng, 0.3, 0.0)[:3, :3]
+    dense = (dense + rng.normal(0, sigma_target, dense.shape)) @ tilt.T
+    target = (np.unique(np.floor(dense / pitch), axis=0) + 0.5) * pitch
+    T_gt = random_pose(rng)
+    world, _ = corner_scene(rng, n_source)
+    world = (world + rng.normal(0, sigma_source, world.shape)) @ tilt.T
+    return (world - T_gt[:3, 3]) @ T_gt[:3, :3], target, T_gt
+
+
+@pytest.mark.slow
+def test_dense_voxel_map_covariance_is_not_overconfident():
+    """A dense voxel map of planes tilted against its lattice: the term is an upper bound
+    there (the tilted planes' offsets cancel along them), so the mean NEES falls below the
+    band; without the term the sandwich alone is over-confident (negative control)."""
+    errors, covs, model = [], [], []
+    for seed in range(3000, 3000 + N_TRIALS):
+        source, target, T_gt = voxel_map_pair(seed)
+        result = Registration(source, target,
+                              RegistrationConfig(max_correspondence_distance=0.3)).run()
+        assert result.converged, result.reason
+        assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+        errors.append(pose_error(result.T, T_gt).tangent)
+        covs.append(result.covariance)
+        model.append(result.diagnostic.model_covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.mean <= check.upper, check
+    assert _mean_nees(errors, np.array(covs) - np.array(model)) > check.upper
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known gap: 3 cm point noise, mean NEES ~10.6 "
+                                       "(normal-estimation errors correlated beyond the blocks)")
+def test_sandwich_at_3cm_point_noise_is_consistent():
+    errors, covs = [], []
+    for seed in range(1000, 1000 + N_TRIALS):
+        source, _, target, _, T_gt = make_pair(seed, 2000, 0.03)
+        result = Registration(source, target,
+                              RegistrationConfig(max_correspondence_distance=0.3)).run()
+        errors.append(pose_error(result.T, T_gt).tangent)
+        covs.append(result.covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.passed, check
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known gap: real scan splits, mean NEES ~10.0")
+def test_real_scan_splits_covariance_is_consistent(shared_data):
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.registration_real import scan_setting
+
+    errors, covs = [], []
+    for seed in range(100, 100 + N_TRIALS):
+        s = scan_setting(shared_data / "octomap", seed)
+        metres, degrees, d0 = s.offsets["small"]
+        init = s.T_gt @ offset_about_centroid(np.random.default_rng(seed),
+                                              s.source.points.mean(axis=0), metres, degrees)
+        config = RegistrationConfig(max_correspondence_distance=s.d_final,
+                                    initial_correspondence_distance=d0,
+                                    decay=s.d_final / d0, anneal="convergence")
+        result = Registration(s.source.points, s.target.points, config).run(init)
+        assert result.converged, result.reason
+        assert result.diagnostic.quantisation_pitch is None  # averaged voxels: no lattice
+        errors.append(pose_error(result.T, s.T_gt).tangent)
+        covs.append(result.covariance)
+    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    assert check.passed, check
