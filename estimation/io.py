@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,7 @@ import gtsam
 import numpy as np
 
 from .errors import EstimationError, FormatError, OctofactorError
-from .fileio import BinaryReader, atomic_write
+from .fileio import BinaryReader, atomic_write, check_input_file, read_input_bytes
 from .pose_graph import PoseGraph, Scan, as_covariance, direction_tangent_covariance, node_key
 
 PathLike = str | os.PathLike
@@ -70,6 +71,7 @@ def read_tum_arrays(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     of unit norm, else a :class:`FormatError` names the file and line.
     """
     rows = []
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for line_no, line in enumerate(handle, 1):
             tokens = line.split("#", 1)[0].replace(",", " ").split()
@@ -78,6 +80,7 @@ def read_tum_arrays(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
             values = _parse_float_line(path, line_no, tokens, 8,
                                        "TUM pose line 't tx ty tz qx qy qz qw'")
             _check_quaternion(path, line_no, values[4:8])
+            _check_translation(path, line_no, values[1:4], "TUM pose")
             rows.append(values)
     data = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
     return data[:, 0].copy(), data[:, 1:].copy()
@@ -121,45 +124,93 @@ def write_tum(path: PathLike, graph: PoseGraph) -> None:
 
 # ---------------------------------------------------------------- g2o
 _G2O_TOKENS = {"VERTEX_SE3:QUAT": 9, "EDGE_SE3:QUAT": 31, "FIX": None}
+_G2O_TAG = re.compile(r"[A-Z][A-Z0-9_]*(:[A-Z0-9_]+)?")
+_CONTROL = re.compile(r"[\x00-\x08\x0e-\x1f\x7f]")  # binary garbage in a text line
+#: largest |coordinate| (m) a pose-graph file may hold: beyond it float64 costs overflow
+MAX_COORDINATE = 1e9
+#: GTSAM keys at or above 2**56 carry a symbol character in their top byte
+MAX_NODE_ID = (1 << 56) - 1
+#: edge information eigenvalues must lie in [1/MAX_SIGMA**2, 1/MIN_SIGMA**2]
+MIN_SIGMA, MAX_SIGMA = 1e-10, 1e10
+
+
+def _check_translation(path: PathLike, line_no: int, t: np.ndarray, what: str) -> None:
+    if np.max(np.abs(t)) > MAX_COORDINATE:
+        raise FormatError(path, f"{what}: translation beyond {MAX_COORDINATE:g} m",
+                          line=line_no)
+
+
+def _node_id(path: PathLike, line_no: int, token: str) -> int:
+    if not token.isdigit() or not token.isascii():
+        raise FormatError(path, f"bad vertex id {token!r} (a non-negative integer)",
+                          line=line_no)
+    node_id = int(token)
+    if node_id > MAX_NODE_ID:
+        raise FormatError(path, f"vertex id {token} is beyond 2^56 - 1 (GTSAM's key range)",
+                          line=line_no)
+    return node_id
+
+
+def _check_information(path: PathLike, line_no: int, info: np.ndarray) -> None:
+    eig = np.linalg.eigvalsh(info)
+    if not eig[0] > 0:
+        raise FormatError(path, "edge information matrix is not positive definite",
+                          line=line_no)
+    if eig[0] < MAX_SIGMA ** -2 or eig[-1] > MIN_SIGMA ** -2:
+        raise FormatError(path, f"edge information eigenvalues {eig[0]:.3g}..{eig[-1]:.3g} "
+                          f"outside [{MAX_SIGMA ** -2:g}, {MIN_SIGMA ** -2:g}] (sigmas between "
+                          f"{MIN_SIGMA:g} and {MAX_SIGMA:g})", line=line_no)
 
 
 def _validate_g2o(path: PathLike) -> None:
     """Check every line GTSAM will read, so errors name the line (GTSAM's do not)."""
     seen_vertex = set()
     count = 0
-    with open(path, encoding="utf-8", errors="replace") as handle:
-        for line_no, line in enumerate(handle, 1):
+    check_input_file(path)
+    with open(path, "rb") as handle:
+        for line_no, raw in enumerate(handle, 1):
+            try:
+                line = raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise FormatError(path, f"not UTF-8 text (byte {exc.start} of the line)",
+                                  line=line_no) from None
             tokens = line.split()
             if not tokens or tokens[0].startswith("#"):
                 continue
             tag = tokens[0]
+            if not _G2O_TAG.fullmatch(tag) or _CONTROL.search(line):
+                raise FormatError(path, f"not a g2o line (tag {tag[:20]!r})", line=line_no)
             if tag in ("VERTEX_SE2", "EDGE_SE2"):
                 raise FormatError(path, f"{tag} is a 2-D element; octofactor reads 3-D g2o files",
                                   line=line_no)
             if tag not in _G2O_TOKENS:
-                continue  # GTSAM skips unknown tags too
+                continue  # another g2o element (GTSAM skips it too)
             expected = _G2O_TOKENS[tag]
             if expected is None:
                 continue
-            values = _parse_float_line(path, line_no, tokens[1:], expected - 1, tag)
             if tag == "VERTEX_SE3:QUAT":
+                node_id = _node_id(path, line_no, tokens[1]) if len(tokens) > 1 else None
+                values = _parse_float_line(path, line_no, tokens[1:], expected - 1, tag)
+                _check_translation(path, line_no, values[1:4], tag)
                 _check_quaternion(path, line_no, values[4:8])
-                if values[0] < 0 or values[0] != int(values[0]):
-                    raise FormatError(path, f"bad vertex id {tokens[1]}", line=line_no)
-                seen_vertex.add(int(values[0]))
+                if node_id in seen_vertex:
+                    raise FormatError(path, f"vertex {node_id} defined twice", line=line_no)
+                seen_vertex.add(node_id)
             else:
+                ids = [_node_id(path, line_no, t) for t in tokens[1:3]]
+                values = _parse_float_line(path, line_no, tokens[1:], expected - 1, tag)
+                _check_translation(path, line_no, values[2:5], tag)
                 _check_quaternion(path, line_no, values[5:9])
+                if ids[0] == ids[1]:
+                    raise FormatError(path, f"edge from vertex {ids[0]} to itself (a self-loop)",
+                                      line=line_no)
                 info = np.zeros((6, 6))
                 info[np.triu_indices(6)] = values[9:]
                 info = info + np.triu(info, 1).T
-                try:
-                    np.linalg.cholesky(info)
-                except np.linalg.LinAlgError:
-                    raise FormatError(path, "edge information matrix is not positive definite",
-                                      line=line_no) from None
-                for vertex in values[:2]:
-                    if int(vertex) not in seen_vertex:
-                        raise FormatError(path, f"edge refers to vertex {int(vertex)} "
+                _check_information(path, line_no, info)
+                for vertex in ids:
+                    if vertex not in seen_vertex:
+                        raise FormatError(path, f"edge refers to vertex {vertex} "
                                           "not defined before it", line=line_no)
             count += 1
     if count == 0:
@@ -355,7 +406,7 @@ def _sidecar_list(sidecar: Path, document: dict, key: str) -> list:
 def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
     """Validate the sidecar against ``graph`` (read from its g2o file) and apply it."""
     try:
-        document = json.loads(sidecar.read_text(encoding="utf-8"),
+        document = json.loads(read_input_bytes(sidecar).decode("utf-8"),
                               parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise FormatError(sidecar, f"not valid JSON: {exc.msg}", line=exc.lineno) from None
@@ -485,6 +536,8 @@ def _read_pose6d(reader: BinaryReader, what: str) -> _Pose6D:
     q = np.array(values[5:9], dtype=np.float32)
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
         raise reader.error(f"{what} has NaN or inf values", offset=start)
+    if np.max(np.abs(t)) > MAX_COORDINATE:
+        raise reader.error(f"{what} translation is beyond {MAX_COORDINATE:g} m", offset=start)
     norm = float(np.linalg.norm(q.astype(float)))
     if abs(norm - 1.0) > 1e-3:
         raise reader.error(f"{what} quaternion norm is {norm:.6g}, not 1", offset=start)
@@ -498,7 +551,7 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
     ``odometry`` between factors whose covariance is the identity divided by the edge
     weight (the format carries no covariance; the weight is kept in the record's metadata).
     """
-    data = Path(path).read_bytes()
+    data = read_input_bytes(path)
     reader = BinaryReader(data, path)
     (n_nodes,) = reader.unpack("I", "node count")
     # The smallest node is 4 + 64 + 4 bytes: a lying count fails here, before allocation.
@@ -530,6 +583,9 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
         if first not in graph.nodes or second not in graph.nodes:
             raise reader.error(f"edge #{index} refers to unknown node {first} or {second}",
                                offset=edge_start)
+        if first == second:
+            raise reader.error(f"edge #{index} goes from node {first} to itself (a self-loop)",
+                               offset=edge_start)
         if not (math.isfinite(weight) and weight > 0):
             raise reader.error(f"edge #{index} weight {weight} is not positive",
                                offset=reader.pos - 8)
@@ -549,6 +605,10 @@ def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
     and covariances are dropped.
     """
     dropped: dict[str, None] = {}  # insertion-ordered set
+    too_big = [node_id for node_id in graph.nodes if not 0 <= node_id < 1 << 32]
+    if too_big:
+        raise OctofactorError(f"{path}: node id {too_big[0]} does not fit the .graph format's "
+                              "uint32 ids (0 .. 2^32 - 1)")
     parts: list[bytes] = [struct.pack("<I", len(graph.nodes))]
     for node_id in graph.sorted_ids():
         node = graph.nodes[node_id]

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .errors import FormatError, OctofactorError
-from .fileio import atomic_write
+from .fileio import atomic_write, check_input_file
 from .io import _parse_float_line, read_tum_arrays
 
 PathLike = str | os.PathLike
@@ -75,6 +75,7 @@ def read_kitti_arrays(path: PathLike) -> np.ndarray:
     :class:`FormatError` naming ``file:line``.
     """
     rows = []
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for line_no, line in enumerate(handle, 1):
             tokens = line.split("#", 1)[0].split()
@@ -127,6 +128,7 @@ def write_tum_arrays(path: PathLike, timestamps: np.ndarray, poses_tum: np.ndarr
 # ---------------------------------------------------------------- any format
 def detect_trajectory_format(path: PathLike) -> str:
     """``'kitti'`` when the first data line has 12 numbers, ``'tum'`` when it has 8."""
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for line_no, line in enumerate(handle, 1):
             tokens = line.split("#", 1)[0].replace(",", " ").split()

@@ -18,10 +18,12 @@ import gtsam
 import numpy as np
 
 from estimation.errors import FormatError
-from estimation.fileio import atomic_write
+from estimation.fileio import atomic_write, check_input_file, read_input_bytes
 from perception.errors import ImageError, PerceptionError
 
 CAMERA_FILE_NAME = "camera.txt"
+#: largest image file read (bytes): a 4K 16-bit PNG is ~25 MB
+MAX_IMAGE_FILE_BYTES = 256 << 20
 _CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
 
 
@@ -75,6 +77,7 @@ def read_camera_file(path: str | os.PathLike) -> CameraIntrinsics:
     """
     path = Path(path)
     try:
+        check_input_file(path, max_bytes=1 << 20)
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise FormatError(path, "camera file not found") from None
@@ -162,6 +165,7 @@ def read_timestamp_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]
         raise FormatError(path, "association file not found")
     stamps: list[float] = []
     names: list[str] = []
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for number, line in enumerate(handle, start=1):
             fields = line.split("#", 1)[0].split()
@@ -403,7 +407,9 @@ def read_depth(path: str | os.PathLike, intr: CameraIntrinsics) -> np.ndarray:
 
 def _read_bytes(path: str | os.PathLike) -> bytes:
     try:
-        return Path(path).read_bytes()
+        return read_input_bytes(path, max_bytes=MAX_IMAGE_FILE_BYTES)
+    except FormatError as exc:
+        raise ImageError(path, exc.reason) from None
     except FileNotFoundError:
         raise ImageError(path, "image file not found") from None
     except OSError as exc:

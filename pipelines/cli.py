@@ -74,20 +74,73 @@ def _usage(parser: argparse.ArgumentParser) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    return run_command(args.func, args)
+
+
+def run_command(func: Callable, args: argparse.Namespace) -> int:
+    """Run one command; every error a user can cause becomes one line on stderr and exit 2.
+
+    This is the one place that turns errors into messages: the project's errors
+    (OctofactorError), every OSError (missing, unreadable or unwritable files, names over
+    255 bytes, a full disk), text files that are not UTF-8, and running out of memory.
+    Warnings (numpy RuntimeWarnings, Open3D notes) are held back while the command runs
+    and printed after it only when it succeeds, so an error line is never preceded by them.
+    SIGTERM is turned into an exception so that temporary files are removed.
+    ``OCTOFACTOR_TRACEBACK=1`` re-raises instead (for debugging).
+    """
+    import os
+    import signal
+    import warnings
+
+    def on_sigterm(signum, frame):
+        raise SystemExit(128 + signum)
+
+    with_traceback = os.environ.get("OCTOFACTOR_TRACEBACK") == "1"
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    with warnings.catch_warnings(record=True) as held:
+        warnings.simplefilter("default")
+        try:
+            status = int(func(args) or 0)
+        except KeyboardInterrupt:
+            print("octofactor: interrupted", file=sys.stderr)
+            return 130
+        except Exception as exc:  # noqa: BLE001 - the one place errors become a line
+            if with_traceback:
+                raise
+            print(f"octofactor: error: {error_line(exc)}", file=sys.stderr)
+            return 2
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+    for warning in held:
+        print(f"octofactor: warning: {warning.message}", file=sys.stderr)
+    return status
+
+
+def error_line(exc: BaseException) -> str:
+    """The one-line message of an error: file or option first, no traceback."""
+    import errno
+
     from estimation.errors import OctofactorError
 
-    try:
-        return int(args.func(args) or 0)
-    except OctofactorError as exc:
-        print(f"octofactor: error: {exc}", file=sys.stderr)
-        return 2
-    except (FileNotFoundError, IsADirectoryError, PermissionError, NotADirectoryError) as exc:
+    if isinstance(exc, OctofactorError):
+        text = str(exc)
+    elif isinstance(exc, OSError):
+        reason = exc.strerror or str(exc) or type(exc).__name__
+        if exc.errno == errno.ENAMETOOLONG:
+            reason = "file name too long"
         name = exc.filename if exc.filename is not None else ""
-        print(f"octofactor: error: {name}: {exc.strerror}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("octofactor: interrupted", file=sys.stderr)
-        return 130
+        if exc.filename2 is not None:
+            name = f"{name} -> {exc.filename2}"
+        text = f"{name}: {reason}" if name else reason
+    elif isinstance(exc, UnicodeDecodeError):
+        text = (f"a file is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
+                f"{exc.start})")
+    elif isinstance(exc, MemoryError):
+        text = "out of memory (is an input file or option far larger than intended?)"
+    else:
+        # not an error octofactor raises on purpose: still one line, with its type
+        text = f"unexpected {type(exc).__name__}: {exc} (OCTOFACTOR_TRACEBACK=1 shows where)"
+    return " ".join(text.split())  # one line
 
 
 if __name__ == "__main__":

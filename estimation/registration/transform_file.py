@@ -6,13 +6,17 @@ import os
 import numpy as np
 
 from ..errors import FormatError
-from ..fileio import atomic_write
+from ..fileio import atomic_write, check_input_file
 
 
 def read_transform(path: str | os.PathLike) -> np.ndarray:
     """Return the rigid 4x4 matrix stored as text in ``path`` (FormatError when it is not one)."""
-    with open(path) as handle:
-        text = handle.read(1 << 16)
+    check_input_file(path, max_bytes=1 << 16)
+    try:
+        with open(path, encoding="utf-8") as handle:
+            text = handle.read()
+    except UnicodeDecodeError as exc:
+        raise FormatError(path, "not UTF-8 text (a 4x4 matrix file)", offset=exc.start) from None
     rows = [ln.split() for ln in text.splitlines()
             if ln.strip() and not ln.lstrip().startswith("#")]
     if len(rows) != 4 or any(len(r) != 4 for r in rows):
