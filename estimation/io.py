@@ -703,6 +703,7 @@ def load_node_clouds(graph: PoseGraph, directory: PathLike) -> int:
 
 def _read_cloud(path: Path) -> np.ndarray:
     if path.suffix == ".xyz":
+        check_input_file(path)
         try:
             points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
         except ValueError as exc:
@@ -711,9 +712,13 @@ def _read_cloud(path: Path) -> np.ndarray:
             raise FormatError(path, f"expected 3 columns, found {points.shape[1]}")
         points = points.reshape(-1, 3)
     else:
-        import open3d as o3d  # heavy: only when PLY/PCD clouds are asked for
+        from .ply import check_ply, read_ply_quietly  # Open3D: only for PLY/PCD clouds
 
-        points = np.asarray(o3d.io.read_point_cloud(str(path)).points)
+        if path.suffix == ".ply":
+            check_ply(path)
+        else:
+            check_input_file(path)
+        points = np.asarray(read_ply_quietly(path, legacy=True).points)
         if len(points) == 0:
             raise FormatError(path, "no points read (unreadable or empty cloud)")
     if not np.all(np.isfinite(points)):

@@ -20,6 +20,7 @@ import numpy as np
 from estimation.errors import FormatError
 from estimation.fileio import atomic_write, check_input_file, read_input_bytes
 from perception.errors import ImageError, PerceptionError
+from perception.image_header import decode
 
 CAMERA_FILE_NAME = "camera.txt"
 #: largest image file read (bytes): a 4K 16-bit PNG is ~25 MB
@@ -264,10 +265,9 @@ def first_image_size(paths) -> tuple[int, int] | None:
 
     for path in paths:
         try:
-            data = np.frombuffer(_read_bytes(path), dtype=np.uint8)
+            image = decode(path, _read_bytes(path), cv2.IMREAD_UNCHANGED)
         except ImageError:
             continue
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         if image is not None and image.ndim >= 2:
             return int(image.shape[1]), int(image.shape[0])
     return None
@@ -371,7 +371,7 @@ def read_rgb(path: str | os.PathLike, intr: CameraIntrinsics | None = None) -> n
     import cv2
 
     data = _read_bytes(path)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decode(path, data, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ImageError(path, "cannot decode the colour image (corrupt or not an image)")
     if image.dtype != np.uint8:
@@ -395,7 +395,7 @@ def read_depth(path: str | os.PathLike, intr: CameraIntrinsics) -> np.ndarray:
     import cv2
 
     data = _read_bytes(path)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decode(path, data, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ImageError(path, "cannot decode the depth image (corrupt or not an image)")
     if image.dtype != np.uint16 or image.ndim != 2:

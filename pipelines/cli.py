@@ -36,8 +36,15 @@ GROUPS = {
 AddCommand = Callable[..., argparse.ArgumentParser]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (``--help`` still shows the usage)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="octofactor",
         description="Probabilistic estimation on factor graphs for robot perception.",
     )
@@ -98,7 +105,6 @@ def run_command(func: Callable, args: argparse.Namespace) -> int:
     with_traceback = os.environ.get("OCTOFACTOR_TRACEBACK") == "1"
     previous = signal.signal(signal.SIGTERM, on_sigterm)
     with warnings.catch_warnings(record=True) as held:
-        warnings.simplefilter("default")
         try:
             status = int(func(args) or 0)
         except KeyboardInterrupt:

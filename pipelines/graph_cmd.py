@@ -66,6 +66,9 @@ def run_convert(args) -> int:
 def run_optimize(args) -> int:
     from estimation.io import read_pose_graph, write_pose_graph
     from estimation.pose_graph import GAUGE_SIGMA
+    from pipelines.validate import integer
+
+    integer("--max-iterations", args.max_iterations, 1, 100000)
 
     graph = read_pose_graph(args.input)
     if not graph.factors:

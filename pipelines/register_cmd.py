@@ -155,6 +155,9 @@ def _summary(out: dict) -> str:
 
 
 def run_register(args) -> int:
+    from pipelines.validate import registration_options
+
+    registration_options(args)  # before the clouds are read
     source = _load(args.source, args.method)
     target = _load(args.target, args.method)
     out, _ = _register(args, source, target)
@@ -166,6 +169,9 @@ def run_register(args) -> int:
 def run_calibrate(args) -> int:
     import numpy as np
 
+    from pipelines.validate import registration_options
+
+    registration_options(args)  # before the clouds are read
     robot_map = _load(args.robot_map, args.method)
     headset = _load(args.headset, args.method)
     flip = None

@@ -20,6 +20,9 @@ def register(add_command) -> None:
 
 def run(args) -> int:
     from perception.simulation.corridor import CorridorConfig, simulate_corridor
+    from pipelines.validate import corridor_options
+
+    corridor_options(args)
 
     config = CorridorConfig(seed=args.seed, length=args.length, width=args.width,
                             height=args.height, speed=args.speed, period=args.period,

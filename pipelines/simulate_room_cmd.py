@@ -30,12 +30,18 @@ def register(add_command) -> None:
 def run(args) -> int:
     from estimation.errors import OctofactorError
     from perception.simulation.room import RoomConfig, simulate_room
+    from pipelines.validate import room_options
+
+    room_options(args)
 
     try:
         width, height = (int(v) for v in args.image_size.lower().split("x"))
     except ValueError:
         raise OctofactorError(
             f"--image-size must look like 320x240, got {args.image_size!r}") from None
+    from pipelines.validate import image_size
+
+    width, height = image_size("--image-size", width, height)
 
     config = RoomConfig(seed=args.seed, label_accuracy=args.label_accuracy,
                         robot_label_accuracy=args.robot_label_accuracy,

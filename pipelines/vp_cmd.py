@@ -46,7 +46,9 @@ def parse_intrinsics(text: str):
     if len(values) != 4 or not all(math.isfinite(v) for v in values) or min(values[:2]) <= 0:
         raise IntrinsicsError(f"--intrinsics: expected four numbers fx,fy,cx,cy with fx, fy > 0, "
                               f"got {text!r}")
-    fx, fy, cx, cy = values
+    from pipelines.validate import intrinsics
+
+    fx, fy, cx, cy = intrinsics("--intrinsics", values)
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 

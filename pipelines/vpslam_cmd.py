@@ -67,7 +67,12 @@ def _intrinsics(text: str) -> tuple[float, float, float, float]:
             or not all(v > 0 for v in values[:2]):
         raise argparse.ArgumentTypeError("expected fx,fy,cx,cy (four finite numbers, fx and "
                                          "fy > 0)")
-    return values
+    from pipelines.validate import OptionError, intrinsics
+
+    try:
+        return intrinsics("--intrinsics", values)
+    except OptionError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 def run(args) -> int:
@@ -80,6 +85,9 @@ def run(args) -> int:
     from estimation.errors import OctofactorError
     from pipelines.vpslam import VpSlamConfig, run_vpslam
 
+    from pipelines.validate import vpslam_options
+
+    vpslam_options(args)
     intrinsics = None
     if args.intrinsics is not None or args.depth_scale is not None:
         intrinsics = _resolve_intrinsics(Path(args.seq_dir), args.intrinsics, args.depth_scale)

@@ -619,6 +619,8 @@ class Registration:
 
 def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndarray:
     """Return ``values`` (M, d) summed over the cubic blocks of edge ``size`` holding ``points``."""
+    if not size > 0:  # identical points: a neighbourhood radius of 0, one block
+        return values.sum(axis=0, keepdims=True)
     cells = np.floor(points / size).astype(np.int64)
     _, block = np.unique(cells, axis=0, return_inverse=True)
     out = np.zeros((int(block.max()) + 1, values.shape[1]))
