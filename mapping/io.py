@@ -14,7 +14,7 @@ import numpy as np
 from estimation.errors import FormatError
 from estimation.fileio import atomic_write, read_input_bytes
 
-from .octree import OcTree
+from .octree import MAX_RESOLUTION, OcTree
 
 BT_MAGIC = b"# Octomap OcTree binary file"
 OT_MAGIC = b"# Octomap OcTree file"
@@ -27,7 +27,7 @@ OT_NODE_BYTES = {"OcTree": 4, "OcTreeStamped": 4, "ColorOcTree": 7}
 BT_IDS = ("OcTree", "OcTreeStamped", "ColorOcTree")
 #: largest resolution read (m): voxel centres and sizes (float32 in liboctomap and in PLY
 #: exports) stay finite up to res * 2**16 < 3.4e38
-MAX_RES = 1e30
+MAX_RES = MAX_RESOLUTION
 
 
 def format_res(res: float) -> str:

@@ -21,16 +21,17 @@ _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 
 
 
 def claimed_size(data: bytes) -> tuple[int, int] | None:
-    """(width, height) the header of an encoded image claims, None for unknown formats."""
+    """(width, height) the header of an encoded image claims; None for unknown formats and
+    headers too damaged to read (OpenCV then refuses them)."""
     if data[:8] == _PNG_MAGIC:
         if len(data) < 24 or data[12:16] != b"IHDR":
-            return 0, 0
+            return None
         return struct.unpack(">II", data[16:24])
     if data[:2] == b"\xff\xd8":
         pos = 2
         while pos + 4 <= len(data):
             if data[pos] != 0xFF:
-                return 0, 0
+                return None
             marker = data[pos + 1]
             if marker == 0xFF:  # fill byte
                 pos += 1
@@ -41,11 +42,11 @@ def claimed_size(data: bytes) -> tuple[int, int] | None:
             (length,) = struct.unpack(">H", data[pos + 2:pos + 4])
             if marker in _SOF:
                 if pos + 9 > len(data):
-                    return 0, 0
+                    return None
                 height, width = struct.unpack(">HH", data[pos + 5:pos + 9])
                 return width, height
             pos += 2 + length
-        return 0, 0
+        return None
     if data[:2] == b"BM" and len(data) >= 26:
         width, height = struct.unpack("<ii", data[18:26])
         return abs(width), abs(height)
@@ -59,7 +60,7 @@ def claimed_size(data: bytes) -> tuple[int, int] | None:
         try:
             return int(tokens[0]), int(tokens[1])
         except (IndexError, ValueError):
-            return 0, 0
+            return None
     return None
 
 

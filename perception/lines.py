@@ -11,7 +11,6 @@ import numpy as np
 
 from perception.errors import ImageError, PerceptionError
 
-
 #: smallest image side the line and VP detectors accept (pixels)
 MIN_IMAGE_SIDE = 8
 #: largest image file read (bytes)

@@ -60,7 +60,6 @@ def run_map(args: argparse.Namespace) -> int:
     from estimation.errors import OctofactorError
     from estimation.io import load_node_clouds, read_pose_graph
     from mapping import fuse
-
     from pipelines.validate import map_options
 
     _check_ext(args.output, (".bt", ".ot"))
@@ -109,7 +108,6 @@ def run_convert(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from mapping import OcTree
     from mapping.export import save_height_slice, write_ply
-
     from pipelines.validate import number
 
     ext = _check_ext(args.output, (".ply", ".png"))

@@ -83,9 +83,8 @@ def run(args) -> int:
     from pathlib import Path
 
     from estimation.errors import OctofactorError
-    from pipelines.vpslam import VpSlamConfig, run_vpslam
-
     from pipelines.validate import vpslam_options
+    from pipelines.vpslam import VpSlamConfig, run_vpslam
 
     vpslam_options(args)
     intrinsics = None
