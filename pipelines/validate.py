@@ -91,6 +91,7 @@ def image_size(option: str, width, height) -> tuple[int, int]:
 
 def corridor_options(args) -> None:
     """Bounds of ``simulate corridor``: sizes of a building, a walking pace, <= 20,000 frames."""
+    output_folder("OUT_DIR", _first(args, "out_dir", "output"))
     seed(args.seed)
     length = number("--length", args.length, 0.0, 1000.0, low_open=True)
     number("--width", args.width, 0.5, 100.0)
@@ -109,6 +110,8 @@ MAX_CORRIDOR_FRAMES = 20000
 
 def registration_options(args) -> None:
     """Bounds of ``register`` / ``calibrate``."""
+    output_file("-o", args.output)
+    output_file("--graph", getattr(args, "graph", None))
     number("--max-corr", args.max_corr, 0.0, 1e6, low_open=True)
     number("--initial-corr", args.initial_corr, 0.0, 1e6, low_open=True, allow_none=True)
     number("--alpha", args.alpha, 0.0, 1e6, low_open=True)
@@ -117,6 +120,7 @@ def registration_options(args) -> None:
 
 def room_options(args) -> None:
     """Bounds of ``simulate room`` (the image size is checked where it is parsed)."""
+    output_folder("OUT_DIR", _first(args, "out_dir", "output"))
     seed(args.seed)
     number("--label-accuracy", args.label_accuracy, 0.0, 1.0)
     number("--robot-label-accuracy", args.robot_label_accuracy, 0.0, 1.0)
@@ -127,6 +131,7 @@ def room_options(args) -> None:
 
 def map_options(args) -> None:
     """Bounds of ``map``: a leaf size the octree's float32 keys can hold, a finite range."""
+    output_file("-o", args.output)
     number("--resolution", args.resolution, 0.0, 1e6, low_open=True)
     if number("--max-range", args.max_range, -1e9, 1e9) == 0.0:
         raise OptionError("--max-range must be positive, or negative for no limit, got 0")
@@ -134,6 +139,7 @@ def map_options(args) -> None:
 
 def vpslam_options(args) -> None:
     """Bounds of ``vpslam`` (--intrinsics is checked as it is parsed)."""
+    output_folder("-o", _first(args, "output", "out"))
     number("--depth-scale", args.depth_scale, 0.0, 1e9, low_open=True, allow_none=True)
     number("--vp-distance", args.vp_distance, 0.0, 1e12, low_open=True)
     number("--gate", args.gate, 0.0, 1e12, low_open=True, allow_none=True)
@@ -142,3 +148,34 @@ def vpslam_options(args) -> None:
         raise OptionError("--max-range must be positive, or negative for no limit, got 0")
     number("--vo-scale", args.vo_scale, 0.05, 1.0)
     integer("--max-frames", args.max_frames, 1, 10**9, allow_none=True)
+
+
+def output_file(option: str, path) -> None:
+    """Check an output file before any work: its folder exists and the path is not a link,
+    folder or special file (:func:`estimation.fileio.check_output_path`)."""
+    import os
+
+    from estimation.fileio import check_output_path
+
+    if path is None:
+        return
+    check_output_path(path)
+    folder = os.path.dirname(os.fspath(path)) or "."
+    if not os.path.isdir(folder):
+        raise OptionError(f"{option} {path}: folder {folder} does not exist")
+
+
+def output_folder(option: str, path) -> None:
+    """Check an output folder before any work: missing (it is created) or a folder."""
+    import os
+
+    if path is not None and os.path.lexists(path) and not os.path.isdir(path):
+        raise OptionError(f"{option} {path}: exists and is not a folder")
+
+
+def _first(args, *names):
+    """The first of ``names`` that ``args`` has (option names differ between versions)."""
+    for name in names:
+        if getattr(args, name, None) is not None:
+            return getattr(args, name)
+    return None

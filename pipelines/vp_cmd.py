@@ -111,6 +111,9 @@ def run(args: argparse.Namespace) -> int:
 
     K = parse_intrinsics(args.intrinsics)
     if args.plot is not None:
+        from pipelines.validate import output_folder
+
+        output_folder("--plot", args.plot)
         os.makedirs(args.plot, exist_ok=True)
     for image_path in args.images:
         gray = read_image(image_path)
