@@ -16,6 +16,7 @@ import math
 import os
 import re
 import struct
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -57,6 +58,9 @@ def _parse_float_line(path: PathLike, line_no: int, tokens: list[str], count: in
 
 
 def _check_quaternion(path: PathLike, line_no: int, q: np.ndarray) -> None:
+    if np.max(np.abs(q)) > 2.0:  # far from unit norm (and its norm could overflow)
+        raise FormatError(path, "quaternion is not of unit norm (a component beyond 2)",
+                          line=line_no)
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > 1e-3:
         raise FormatError(path, f"quaternion norm is {norm:.6g}, not 1", line=line_no)
@@ -532,12 +536,14 @@ def _pose6d_for(pose: gtsam.Pose3, cached: _Pose6D | None) -> _Pose6D:
 def _read_pose6d(reader: BinaryReader, what: str) -> _Pose6D:
     start = reader.pos
     values = reader.unpack("iddd" "idddd", what)
-    t = np.array(values[1:4], dtype=np.float32)
-    q = np.array(values[5:9], dtype=np.float32)
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+    t64, q64 = np.array(values[1:4]), np.array(values[5:9])
+    if not (np.all(np.isfinite(t64)) and np.all(np.isfinite(q64))):
         raise reader.error(f"{what} has NaN or inf values", offset=start)
-    if np.max(np.abs(t)) > MAX_COORDINATE:
+    if np.max(np.abs(t64)) > MAX_COORDINATE:
         raise reader.error(f"{what} translation is beyond {MAX_COORDINATE:g} m", offset=start)
+    if np.max(np.abs(q64)) > 2.0:
+        raise reader.error(f"{what} quaternion is not of unit norm", offset=start)
+    t, q = t64.astype(np.float32), q64.astype(np.float32)
     norm = float(np.linalg.norm(q.astype(float)))
     if abs(norm - 1.0) > 1e-3:
         raise reader.error(f"{what} quaternion norm is {norm:.6g}, not 1", offset=start)
@@ -562,11 +568,13 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
         (n_points,) = reader.unpack("I", f"point count of node #{index}")
         chunk = reader.take(n_points * _POINT.size, f"{n_points} points of node #{index}")
         raw = np.frombuffer(chunk, dtype=_POINT_DTYPE)
+        # NaN fails the comparison too; checked in float64, before the float32 cast overflows
+        in_range = np.all(np.abs(raw["xyz"]) <= MAX_COORDINATE, axis=1)
+        if not np.all(in_range):
+            bad = int(np.flatnonzero(~in_range)[0])
+            raise reader.error(f"node #{index} point {bad} is NaN, inf or beyond "
+                               f"{MAX_COORDINATE:g} m", offset=node_start + 4 + bad * _POINT.size)
         points = raw["xyz"].astype(np.float32)
-        if not np.all(np.isfinite(points)):
-            bad = int(np.flatnonzero(~np.all(np.isfinite(points), axis=1))[0])
-            raise reader.error(f"node #{index} point {bad} is NaN or inf",
-                               offset=node_start + 4 + bad * _POINT.size)
         pose6d = _read_pose6d(reader, f"pose of node #{index}")
         (node_id,) = reader.unpack("I", f"id of node #{index}")
         if node_id in graph.nodes:
@@ -586,8 +594,9 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
         if first == second:
             raise reader.error(f"edge #{index} goes from node {first} to itself (a self-loop)",
                                offset=edge_start)
-        if not (math.isfinite(weight) and weight > 0):
-            raise reader.error(f"edge #{index} weight {weight} is not positive",
+        if not MAX_SIGMA ** -2 <= weight <= MIN_SIGMA ** -2:  # NaN fails too
+            raise reader.error(f"edge #{index} weight {weight} is outside "
+                               f"[{MAX_SIGMA ** -2:g}, {MIN_SIGMA ** -2:g}]",
                                offset=reader.pos - 8)
         record = graph.add_between(first, second, constraint.to_pose3(), np.eye(6) / weight)
         record.metadata.update({GRAPH_POSE_KEY: constraint, "weight": weight})
@@ -705,10 +714,16 @@ def _read_cloud(path: Path) -> np.ndarray:
     if path.suffix == ".xyz":
         check_input_file(path)
         try:
-            points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
-        except ValueError as exc:
-            raise FormatError(path, f"not an 'x y z' point file: {exc}") from None
-        if points.size and points.shape[1] != 3:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "no data": an error below
+                points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#",
+                                    encoding="utf-8")
+        except (ValueError, UnicodeDecodeError) as exc:
+            reason = " ".join(str(exc).split())[:200]
+            raise FormatError(path, f"not an 'x y z' point file: {reason}") from None
+        if points.size == 0:
+            raise FormatError(path, "no points (empty or only comments)")
+        if points.shape[1] != 3:
             raise FormatError(path, f"expected 3 columns, found {points.shape[1]}")
         points = points.reshape(-1, 3)
     else:

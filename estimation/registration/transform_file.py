@@ -27,6 +27,10 @@ def read_transform(path: str | os.PathLike) -> np.ndarray:
         raise FormatError(path, f"not a number: {exc}") from None
     if not np.all(np.isfinite(T)):
         raise FormatError(path, "matrix has NaN or inf entries")
+    if np.max(np.abs(T[:3, :3])) > 1.0 + 1e-5:
+        raise FormatError(path, "top-left 3x3 block is not a rotation matrix (an entry beyond 1)")
+    if np.max(np.abs(T[:3, 3])) > 1e9:
+        raise FormatError(path, "translation beyond 1e9 m")
     if not np.allclose(T[3], [0, 0, 0, 1]):
         raise FormatError(path, "last row must be 0 0 0 1", line=4)
     R = T[:3, :3]
