@@ -671,8 +671,10 @@ def format_of(path: PathLike) -> str:
 def read_pose_graph(path: PathLike) -> PoseGraph:
     """Read any supported pose-graph file, chosen by its extension."""
     kind = format_of(path)
-    if not Path(path).is_file():
-        raise OctofactorError(f"{path}: no such file")
+    try:
+        check_input_file(path)
+    except FileNotFoundError:
+        raise OctofactorError(f"{path}: no such file") from None
     return {"octomap": read_scan_graph, "g2o": read_g2o, "tum": read_tum}[kind](path)
 
 
