@@ -116,6 +116,17 @@ class InsertStats:
     n_out_of_bounds: int
 
 
+def _xyz(values, what: str, dtype=np.float32) -> np.ndarray:
+    """``values`` as a contiguous (N, 3) array; OctreeError naming ``what`` for other shapes."""
+    try:
+        array = np.asarray(values, dtype=dtype)
+    except (TypeError, ValueError):
+        raise OctreeError(f"{what} must be numbers of shape (N, 3) or (3,)") from None
+    if array.ndim > 2 or array.shape[-1:] != (3,):
+        raise OctreeError(f"{what} must have shape (N, 3) or (3,), got {array.shape}")
+    return np.ascontiguousarray(array.reshape(-1, 3))
+
+
 def _k():
     from . import _kernels
 
@@ -309,7 +320,7 @@ class OcTree:
 
     def coord_to_key_checked(self, points) -> tuple[np.ndarray, np.ndarray]:
         """(keys (N,3) uint16, valid (N,) bool) like coordToKeyChecked (float32 coordinates)."""
-        pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        pts = _xyz(points, "points")
         k = _k().coords_to_keys(pts, 1.0 / self.resolution)
         valid = (k >= 0).all(axis=1)
         return np.where(k >= 0, k, 0).astype(np.uint16), valid
@@ -396,8 +407,11 @@ class OcTree:
         marked on numba's thread count (``NUMBA_NUM_THREADS``); the result does not depend on it.
         """
         self._check_updatable()
-        pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
-        o = np.asarray(origin, dtype=np.float32).reshape(3)
+        pts = _xyz(points, "points")
+        o = _xyz(origin, "origin")
+        if o.shape[0] != 1:
+            raise OctreeError(f"origin must be one point (3,), got {o.shape[0]} points")
+        o = o.reshape(3)
         if not np.isfinite(o).all():
             raise OctreeError(f"sensor origin must be finite, got {o.tolist()}")
         codes, upd, n_occ, n_nonfinite, n_oob, _n_failed = _scan_updates(
@@ -568,7 +582,7 @@ class OcTree:
         Points outside the map are reported unknown.
         """
         if keys:
-            kk = np.asarray(points, dtype=np.int64).reshape(-1, 3)
+            kk = _xyz(points, "keys", np.int64)
             valid = ((kk >= 0) & (kk < 65536)).all(axis=1)
             kk = np.where(valid[:, None], kk, 0).astype(np.uint16)
         else:
@@ -588,8 +602,8 @@ class OcTree:
     def cast_ray(self, origins, directions, ignore_unknown: bool = False,
                  max_range: float = -1.0) -> RayResult:
         """castRay for one or N rays: first occupied cell along each ray (exact semantics)."""
-        o = np.ascontiguousarray(np.asarray(origins, np.float32).reshape(-1, 3))
-        d = np.ascontiguousarray(np.asarray(directions, np.float32).reshape(-1, 3))
+        o = _xyz(origins, "origins")
+        d = _xyz(directions, "directions")
         if d.shape[0] == 1 and o.shape[0] > 1:
             d = np.ascontiguousarray(np.broadcast_to(d, o.shape))
         if o.shape[0] == 1 and d.shape[0] > 1:

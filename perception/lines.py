@@ -80,6 +80,9 @@ def to_gray_u8(image: np.ndarray) -> np.ndarray:
         image = np.clip(np.nan_to_num(values), 0, 255).astype(np.uint8)
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if min(image.shape) < MIN_IMAGE_SIDE:
+        raise PerceptionError(f"image is {image.shape[1]}x{image.shape[0]} pixels; the detectors "
+                              f"need at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}")
     return np.ascontiguousarray(image)
 
 

@@ -52,6 +52,19 @@ class CameraIntrinsics:
     height: int
     depth_scale: float = 5000.0
 
+    def __post_init__(self):
+        for name in ("fx", "fy", "cx", "cy", "depth_scale"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float, np.number)) or not np.isfinite(value):
+                raise PerceptionError(f"{name} must be a finite number, got {value!r}")
+        for name in ("fx", "fy", "depth_scale"):
+            if not getattr(self, name) > 0:
+                raise PerceptionError(f"{name} must be positive, got {getattr(self, name)!r}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise PerceptionError(f"{name} must be a positive integer, got {value!r}")
+
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual symbol for the camera matrix
         """The 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""

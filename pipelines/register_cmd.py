@@ -212,7 +212,7 @@ def _surface_radius(text: str) -> float | str | None:
         radius = float(text)
     except ValueError:
         radius = float("nan")
-    if not radius > 0:
+    if not 0 < radius <= 1e6:
         raise OctofactorError(f"--surface-radius must be auto, none or a positive number of "
-                              f"metres, got {text!r}")
+                              f"metres (at most 1e6), got {text!r}")
     return radius

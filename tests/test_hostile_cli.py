@@ -89,7 +89,8 @@ def _write_files(d: Path) -> None:
     (d / "garbage.g2o").write_bytes(ok_g2o.encode() + b"\x00\x01\xfe\xff binary garbage\n")
     (d / "selfloop.g2o").write_text(hf.g2o_text(
         edge=f"EDGE_SE3:QUAT 1 1 1 0 0 0 0 0 1 {hf.IDENTITY_INFO}"))
-    (d / "huge.g2o").write_text(ok_g2o.replace("VERTEX_SE3:QUAT 2 2 0.1", "VERTEX_SE3:QUAT 2 1e300 0.1"))
+    (d / "huge.g2o").write_text(ok_g2o.replace("VERTEX_SE3:QUAT 2 2 0.1",
+                                               "VERTEX_SE3:QUAT 2 1e300 0.1"))
     (d / "id2e56.g2o").write_text(ok_g2o.replace("VERTEX_SE3:QUAT 2 ", f"VERTEX_SE3:QUAT {2**56} "))
     tiny = hf.IDENTITY_INFO.replace("1 ", "1e-320 ", 1)
     (d / "tinyinfo.g2o").write_text(hf.g2o_text(

@@ -12,6 +12,7 @@ after the correspondence distance schedule has reached ``max_correspondence_dist
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -143,8 +144,15 @@ class RegistrationConfig:
     surface_min_points: int = 6
 
     def __post_init__(self):
-        if self.max_correspondence_distance <= 0:
-            raise EstimationError("max_correspondence_distance must be positive")
+        for name in ("max_correspondence_distance", "cauchy_alpha"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise EstimationError(f"{name} must be a positive finite number, got {value!r}")
+        if self.initial_correspondence_distance is not None and not (
+                math.isfinite(self.initial_correspondence_distance)
+                and self.initial_correspondence_distance > 0):
+            raise EstimationError(f"initial_correspondence_distance must be a positive finite "
+                                  f"number or None, got {self.initial_correspondence_distance!r}")
         if self.anneal not in ("iteration", "convergence"):
             raise EstimationError(
                 f"anneal must be 'iteration' or 'convergence', got {self.anneal!r}")
