@@ -184,6 +184,48 @@ def atomic_write(path: str | os.PathLike, mode: str = "wb") -> Iterator[IO]:
             os.fsync(handle.fileno())
 
 
+@contextlib.contextmanager
+def captured_native_output() -> Iterator[list[str]]:
+    """Capture what C/C++ libraries print on file descriptors 1 and 2 (libpng, libjpeg,
+    libtiff, OpenCV's and Open3D's loggers) while the block runs.
+
+    Yields a list that holds the captured text after the block, so that the caller can put
+    the library's reason into its one-line error instead of letting it reach the terminal.
+    """
+    import sys
+    import tempfile
+
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    captured: list[str] = []
+    with tempfile.TemporaryFile() as noise_file:
+        noise = noise_file.fileno()
+        saved = [os.dup(1), os.dup(2)]
+        try:
+            os.dup2(noise, 1)
+            os.dup2(noise, 2)
+            yield captured
+        finally:
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)
+            os.lseek(noise, 0, os.SEEK_SET)
+            captured.append(os.read(noise, 1 << 16).decode("utf-8", "replace"))
+
+
+def first_native_message(text: str) -> str:
+    """The first line of captured library output, without OpenCV's log prefix."""
+    import re
+
+    for line in text.splitlines():
+        line = re.sub(r"^\[\s*\w+:\d+@[\d.]+\]\s*(global\s+\S+\s+)?", "", line).strip()
+        if line:
+            return line[:160]
+    return ""
+
+
 class BinaryReader:
     """Little-endian reads from an in-memory buffer that fail with a :class:`FormatError`.
 

@@ -115,6 +115,15 @@ def _parse_header(path, head: bytes) -> PlyHeader:
             raise FormatError(path, f"unknown header keyword {keyword[:30]!r}", line=line_no)
     if fmt is None:
         raise FormatError(path, "header has no format line")
+    for name, count, properties in elements:
+        if name == "vertex":
+            lists = [p for p, kind in properties if kind.startswith("list")]
+            if lists:
+                raise FormatError(path, f"vertex property {lists[0]!r} is a list (Open3D would "
+                                  "skip it)")
+            names = [p for p, _ in properties]
+            if len(set(names)) != len(names):
+                raise FormatError(path, "vertex properties repeat a name")
     return PlyHeader(fmt, tuple(PlyElement(n, c, tuple(p)) for n, c, p in elements),
                      newline + 1)
 
@@ -166,7 +175,13 @@ def read_ply_quietly(path: str | os.PathLike, legacy: bool = False):
     without Open3D's warnings on stdout."""
     import open3d as o3d
 
-    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        if legacy:
-            return o3d.io.read_point_cloud(str(path))
-        return o3d.t.io.read_point_cloud(str(path))
+    from .fileio import captured_native_output, first_native_message
+
+    with captured_native_output() as noise, \
+            o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.io.read_point_cloud(str(path)) if legacy else \
+            o3d.t.io.read_point_cloud(str(path))
+    message = first_native_message(noise[0])
+    if message:
+        raise FormatError(path, f"Open3D could not read it ({message})")
+    return cloud

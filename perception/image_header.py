@@ -17,6 +17,8 @@ from .errors import ImageError
 MAX_IMAGE_PIXELS = 1 << 26
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers (baseline, progressive, lossless...): not DHT/JPG/DAC
+# library messages that mean the decoded pixels are not the file's (libjpeg, libpng)
+_CORRUPT = ("Corrupt JPEG data", "Premature end of JPEG", "libpng error")
 _SOF = {0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF}
 
 
@@ -84,9 +86,19 @@ def decode(path: str | os.PathLike, data: bytes, flags: int, min_side: int = 1):
     import cv2
     import numpy as np
 
+    from estimation.fileio import captured_native_output, first_native_message
+
     check_image_header(path, data, min_side)
     try:
-        return cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+        with captured_native_output() as noise:
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
     except cv2.error as exc:
         reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else "OpenCV error"
         raise ImageError(path, f"cannot decode the image ({reason})") from None
+    message = first_native_message(noise[0])
+    if image is None and message:
+        raise ImageError(path, f"cannot decode the image ({message})")
+    # libjpeg decodes a damaged file to an image with grey blocks, and only says so
+    if any(flag in noise[0] for flag in _CORRUPT):
+        raise ImageError(path, f"corrupt image data ({message})")
+    return image

@@ -54,8 +54,10 @@ class SemanticCloud:
                 f"probs must be (N, C) with N={len(points)}, got shape {probs.shape}")
         if probs.shape[1] < 1:
             raise PerceptionError("a semantic cloud needs at least one class")
-        if not (np.all(np.isfinite(points)) and np.all(np.isfinite(probs))):
-            raise PerceptionError("semantic cloud has NaN or inf values")
+        finite = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(probs), axis=1)
+        if not np.all(finite):
+            raise PerceptionError(f"semantic cloud has NaN or inf values (point "
+                                  f"{int(np.argmin(finite))})")
         if np.any(probs < 0):
             raise PerceptionError("class probabilities must be non-negative")
         sums = probs.sum(axis=1, keepdims=True)

@@ -75,13 +75,17 @@ def _load(path: str, method: str):
     except FormatError as exc:
         if method != "gicp" or "neither" not in str(exc):
             raise
-    # geometry-only PLY: fine for GICP
+    # geometry-only PLY (its header already checked by read_ply): fine for GICP
     import numpy as np
-    import open3d as o3d
 
-    pcd = o3d.t.io.read_point_cloud(str(path))
-    points = pcd.point.positions.numpy().astype(float)
-    return SemanticCloud(points, np.ones((len(points), 1)))
+    from estimation.ply import read_ply_quietly
+    from perception.errors import PerceptionError
+
+    points = read_ply_quietly(path).point.positions.numpy().astype(float)
+    try:
+        return SemanticCloud(points, np.ones((len(points), 1)))
+    except PerceptionError as exc:
+        raise FormatError(path, str(exc)) from None
 
 
 def _register(args, source, target, flip=None) -> dict:

@@ -103,6 +103,20 @@ def _write_files(d: Path) -> None:
     (d / "ok.png").write_bytes(hf.png_bytes(64, 48))
     (d / "img1.png").write_bytes(hf.png_bytes(1, 1))
     (d / "huge.png").write_bytes(hf.png_claiming(60000, 60000))
+    png = hf.png_bytes(64, 48)
+    (d / "truncated.png").write_bytes(png[:len(png) // 2])
+    import cv2
+
+    ok, jpg = cv2.imencode(".jpg", np.full((48, 64, 3), 128, np.uint8))
+    jpg = jpg.tobytes()
+    (d / "garbage.jpg").write_bytes(jpg[:200] + b"\0" * 300 + jpg[500:])
+    (d / "garbage.tif").write_bytes(b"II*\x00" + b"\xff" * 100)
+    (d / "list.ply").write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\n"
+        b"property float z\nproperty list uchar int label\nend_header\n0 0 0 1 0\n1 1 1 1 1\n")
+    (d / "nan.ply").write_bytes(
+        b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+        b"property float z\nproperty int label\nend_header\n0 0 0 0\n1 1 1 1\nnan 2 2 0\n")
     (d / "afile").write_text("an existing file\n")
     (d / "target.json").write_text("{}\n")
     os.symlink("target.json", d / "link.json")
@@ -194,6 +208,12 @@ CASES = [
     ("vp-intrinsics-1e300", "vp {d}/ok.png --intrinsics 1e300,1e300,32,24", "--intrinsics"),
     ("vp-image-1x1", "vp {d}/img1.png --intrinsics 525,525,0,0", "img1.png"),
     ("vp-png-60000", "vp {d}/huge.png --intrinsics 525,525,0,0", "huge.png"),
+    ("vp-truncated-png", "vp {d}/truncated.png --intrinsics 525,525,32,24", "truncated.png"),
+    ("vp-corrupt-jpeg", "vp {d}/garbage.jpg --intrinsics 525,525,32,24", "garbage.jpg"),
+    ("vp-corrupt-tiff", "vp {d}/garbage.tif --intrinsics 525,525,32,24", "garbage.tif"),
+    ("register-list-label", "register {d}/list.ply {d}/ok.ply -o {d}/o25.json", "list.ply"),
+    ("register-nan-point", "register {d}/nan.ply {d}/ok.ply -o {d}/o26.json --method gicp",
+     "nan.ply"),
     ("vp-plot-existing-file", "vp {d}/ok.png --intrinsics 525,525,32,24 --plot {d}/afile",
      "afile"),
     # vpslam
