@@ -115,7 +115,7 @@ def _parse_header(path, head: bytes) -> PlyHeader:
             raise FormatError(path, f"unknown header keyword {keyword[:30]!r}", line=line_no)
     if fmt is None:
         raise FormatError(path, "header has no format line")
-    for name, count, properties in elements:
+    for name, _count, properties in elements:
         if name == "vertex":
             lists = [p for p, kind in properties if kind.startswith("list")]
             if lists:
