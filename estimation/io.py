@@ -738,8 +738,10 @@ def _read_cloud(path: Path) -> np.ndarray:
         points = np.asarray(read_ply_quietly(path, legacy=True).points)
         if len(points) == 0:
             raise FormatError(path, "no points read (unreadable or empty cloud)")
-    if not np.all(np.isfinite(points)):
-        raise FormatError(path, "cloud has NaN or inf coordinates")
+    in_range = np.all(np.abs(points) <= MAX_COORDINATE, axis=1)  # NaN fails too
+    if not np.all(in_range):
+        raise FormatError(path, f"point {int(np.argmin(in_range))} is NaN, inf or beyond "
+                          f"{MAX_COORDINATE:g} m")
     return points.astype(np.float32)
 
 

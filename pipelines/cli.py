@@ -117,8 +117,11 @@ def run_command(func: Callable, args: argparse.Namespace) -> int:
             return 2
         finally:
             signal.signal(signal.SIGTERM, previous)
+    import re
+
     for warning in held:
-        print(f"octofactor: warning: {warning.message}", file=sys.stderr)
+        text = re.sub(r"\x1b\[[0-9;]*m", "", " ".join(str(warning.message).split()))
+        print(f"octofactor: warning: {text}", file=sys.stderr)
     return status
 
 
