@@ -3,7 +3,10 @@
 For each sequence (TUM layout; default: the development set in ../shared/data/rgbd) runs, in
 one process:
 
-* ``default``   -- ``octofactor vpslam`` defaults (error-state EKF, depth normals + line VPs)
+* ``default``   -- ``octofactor vpslam`` defaults (error-state EKF, depth normals + line VPs,
+  frame-to-frame odometry with the coupled covariance)
+* ``motion-cov`` -- the same with the uncorrelated VO covariance (``--vo-cov motion``)
+* ``keyframes`` -- the same with odometry against keyframes (``--keyframes``)
 * ``lines``     -- the same filter with line VPs only (``--detector lines``)
 * ``no-vp``     -- VO only (``--no-vp``), the same odometry
 * ``paper``     -- the seed paper's system (``--paper``: Euler state, VP point, seed detector)
@@ -35,10 +38,14 @@ DEV = [(DATA / "icl_of_kt0", (481.2, 480.0, 319.5, 239.5)),
 def run_ours(seq, intr, name, cache, frames=None):
     from dataclasses import replace
 
+    from perception.odometry import OdometryConfig
     from pipelines.vpslam import VpSlamConfig, run_vpslam
 
     configs = {
         "default": VpSlamConfig(build_map=False),
+        "motion-cov": VpSlamConfig(build_map=False,
+                                   odometry=OdometryConfig(cov_model="motion")),
+        "keyframes": VpSlamConfig(build_map=False, keyframes=True),
         "lines": VpSlamConfig(build_map=False, detector="lines"),
         "no-vp": VpSlamConfig(build_map=False, vp_model="none"),
         "paper": replace(VpSlamConfig.paper(), build_map=False),
@@ -47,7 +54,8 @@ def run_ours(seq, intr, name, cache, frames=None):
     r = run_vpslam(seq, None, configs[name], intrinsics=intr, progress=False,
                    max_frames=frames, odometry_cache=cache).report
     return dict(ate=r["ate_aligned_rmse_m"], rot=r["rot_err_mean_deg"],
-                rpe=r["rpe_trans_rmse_m"], ms=r["total_ms_per_frame_median"])
+                rpe=r["rpe_trans_rmse_m"], ms=r["total_ms_per_frame_median"],
+                nees=r["pose_nees_mean"])
 
 
 def run_open3d(seq, intr, method, max_frames):
@@ -103,16 +111,17 @@ def main(argv=None) -> int:
         width, height = listed_image_size(seq)
         intr = CameraIntrinsics(fx, fy, cx, cy, width, height, 5000.0)
         rows, cache = {}, {}
-        for name in ("default", "lines", "no-vp", "paper"):
+        for name in ("default", "motion-cov", "keyframes", "lines", "no-vp", "paper"):
             rows[name] = run_ours(seq, intr, name, cache, args.frames)
         for method in ("hybrid", "color"):
             rows[f"o3d-{method}"] = run_open3d(seq, intr, method, args.frames)
         print(f"\n{seq.name} ({len(TumRgbdSequence(seq, intrinsics=intr))} frames)")
         print(f"{'run':12s} {'aligned ATE [cm]':>16s} {'rot err [deg]':>14s} "
-              f"{'RPE [mm]':>9s} {'ms/frame':>9s}")
+              f"{'RPE [mm]':>9s} {'ms/frame':>9s} {'pose NEES':>9s}")
         for name, r in rows.items():
+            nees = "-" if r.get("nees") is None else f"{r['nees']:.1f}"
             print(f"{name:12s} {r['ate'] * 100:16.2f} {r['rot']:14.3f} {r['rpe'] * 1e3:9.2f} "
-                  f"{r['ms']:9.1f}")
+                  f"{r['ms']:9.1f} {nees:>9s}")
         d, v = rows["default"], rows["no-vp"]
         best = min(rows["o3d-hybrid"]["ate"], rows["o3d-color"]["ate"])
         best_rot = min(rows["o3d-hybrid"]["rot"], rows["o3d-color"]["rot"])

@@ -7,7 +7,8 @@ Quaternion orders: TUM lines are ``t tx ty tz qx qy qz qw`` (x y z w); g2o ``VER
 is ``x y z qx qy qz qw``; OctoMap ``.graph`` stores ``qw qx qy qz`` (w first).
 
 A g2o file ``X.g2o`` written here gets a JSON sidecar ``X.g2o.json`` with what g2o cannot
-hold (timestamps, node covariances, direction factors); :func:`read_g2o` restores it.
+hold (timestamps, node covariances, Pose3 priors, direction factors); :func:`read_g2o`
+restores it.
 """
 from __future__ import annotations
 
@@ -276,10 +277,10 @@ def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
     every number in shortest round-trip form: GTSAM's own writer prints 6 significant
     digits and so moves poses by up to ~1e-6.
 
-    What g2o cannot hold -- node timestamps, node covariances and direction factors -- goes
-    to the sidecar ``<path>.json`` (:func:`g2o_sidecar_path`; schema in
-    docs/pose_graph_formats.md), written after the g2o file, each atomically. Priors,
-    robust kernels, custom factors and scans are dropped.
+    What g2o cannot hold -- node timestamps, node covariances, Gaussian Pose3 priors and
+    direction factors -- goes to the sidecar ``<path>.json`` (:func:`g2o_sidecar_path`;
+    schema in docs/pose_graph_formats.md), written after the g2o file, each atomically.
+    Robust kernels, custom factors and scans are dropped.
     """
     dropped: dict[str, None] = {}  # insertion-ordered set
     lines = []
@@ -290,7 +291,7 @@ def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
     reorder = np.r_[3:6, 0:3]
     upper = np.triu_indices(6)
     for record in graph.factors:
-        if record.kind == "direction" and "cov_tangent" in record.metadata:
+        if _sidecar_factor(record):
             continue  # in the sidecar
         if record.measured is None or len(record.nodes) != 2:
             dropped[f"{record.kind} factors"] = None
@@ -313,7 +314,18 @@ def write_g2o(path: PathLike, graph: PoseGraph) -> list[str]:
 
 # ---------------------------------------------------------------- g2o sidecar
 G2O_SIDECAR_FORMAT = "octofactor-g2o-sidecar"
-G2O_SIDECAR_VERSION = 1
+G2O_SIDECAR_VERSION = 2  # 2 added "priors"
+G2O_SIDECAR_READS = (1, 2)
+
+
+def _sidecar_factor(record) -> bool:
+    """Whether the sidecar holds this factor: a direction factor, or a Gaussian Pose3 prior
+    (a prior record of kind "prior" without a robust kernel)."""
+    if record.kind == "direction":
+        return "cov_tangent" in record.metadata
+    return (isinstance(record.factor, gtsam.PriorFactorPose3) and record.robust is None
+            and record.measured is not None and record.covariance is not None
+            and len(record.nodes) == 1)
 
 
 def g2o_sidecar_path(path: PathLike) -> Path:
@@ -334,9 +346,13 @@ def _g2o_sidecar(path: PathLike, graph: PoseGraph) -> str:
         node = graph.nodes[node_id]
         nodes.append({"id": node_id, "timestamp": node.timestamp if known else None,
                       "cov": None if node.cov is None else _floats(node.cov)})
-    directions = []
+    directions, priors = [], []
     for record in graph.factors:
-        if record.kind == "direction" and "cov_tangent" in record.metadata:
+        if record.kind != "direction" and _sidecar_factor(record):
+            priors.append({"node": record.nodes[0], "kind": record.kind,
+                           "pose": _floats(pose_to_tum(record.measured)),
+                           "cov": _floats(record.covariance)})
+        elif record.kind == "direction" and "cov_tangent" in record.metadata:
             meta = record.metadata
             directions.append({
                 "node": record.nodes[0],
@@ -356,7 +372,7 @@ def _g2o_sidecar(path: PathLike, graph: PoseGraph) -> str:
 
     # One node or factor per line: readable and diffable for long graphs.
     parts = [f" {dump(key)}: {dump(value)}" for key, value in header.items()]
-    for key, entries in (("nodes", nodes), ("directions", directions)):
+    for key, entries in (("nodes", nodes), ("priors", priors), ("directions", directions)):
         body = ",\n".join(f"  {dump(entry)}" for entry in entries)
         parts.append(f' "{key}": [\n{body}\n ]' if entries else f' "{key}": []')
     return "{\n" + ",\n".join(parts) + "\n}\n"
@@ -420,11 +436,12 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
         raise FormatError(sidecar, f"not an octofactor g2o sidecar (no \"format\": "
                           f"\"{G2O_SIDECAR_FORMAT}\")")
     version = document.get("version")
-    if version != G2O_SIDECAR_VERSION:
+    if type(version) is not int or version not in G2O_SIDECAR_READS:
         raise FormatError(sidecar, f"sidecar version {version!r} is not one this octofactor "
-                          f"reads ({G2O_SIDECAR_VERSION})")
+                          f"reads ({', '.join(map(str, G2O_SIDECAR_READS))})")
     nodes = _sidecar_list(sidecar, document, "nodes")
     directions = _sidecar_list(sidecar, document, "directions")
+    priors = _sidecar_list(sidecar, document, "priors") if version >= 2 else []
 
     ids = []
     for index, entry in enumerate(nodes):
@@ -457,6 +474,28 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
     known = [stamp is not None for stamp in stamps.values()]
     if any(known) and not all(known):
         raise FormatError(sidecar, "some nodes have a timestamp and others null")
+
+    restored_priors = []
+    for index, entry in enumerate(priors):
+        where = f"priors[{index}]"
+        node_id = entry.get("node")
+        if type(node_id) is not int or node_id not in graph.nodes:
+            raise FormatError(sidecar, f"{where}.node must be a node id of the g2o file")
+        kind = entry.get("kind", "prior")
+        if not isinstance(kind, str) or not kind:
+            raise FormatError(sidecar, f"{where}.kind must be a non-empty string")
+        values = _sidecar_array(sidecar, entry.get("pose"), (7,), f"{where}.pose")
+        norm = float(np.linalg.norm(values[3:]))
+        if abs(norm - 1.0) > 1e-3:  # the tolerance of TUM files (a pose may come from one)
+            raise FormatError(sidecar, f"{where}.pose: quaternion qx qy qz qw has norm "
+                              f"{norm:.6g}, not 1")
+        values[3:] /= norm
+        cov = _sidecar_array(sidecar, entry.get("cov"), (6, 6), f"{where}.cov")
+        try:
+            cov = as_covariance(cov, f"{where}.cov")
+        except EstimationError as exc:
+            raise FormatError(sidecar, str(exc)) from None
+        restored_priors.append((node_id, pose_from_tum(values), cov, kind))
 
     restored = []
     for index, entry in enumerate(directions):
@@ -491,6 +530,8 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
                                     "timestamps as null)")
     for node_id, cov in covs.items():
         graph.nodes[node_id].cov = cov
+    for args in restored_priors:
+        graph.add_prior(*args)
     for args in restored:
         graph._add_direction(*args)
 

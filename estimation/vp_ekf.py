@@ -109,6 +109,13 @@ class VpUpdate:
     status is "updated", "gated" (eq. (15) rejected it), "initialised" (the first
     detection created the VP state) or "skipped" (see reason); nis is the squared
     Mahalanobis distance of the innovation (nan when not computed).
+
+    An accepted ("updated") observation of the error-state filter also says what it was, so
+    that it can become a pose-graph direction factor: ``axis`` (the structure axis it was
+    associated with), ``direction_sensor`` (unit, in the camera, signed like the axis),
+    ``direction_cov`` (its 3x3 covariance in the camera, as the filter used it) and
+    ``direction_world`` (the axis in the world as the filter predicted it, before this
+    update). They are None otherwise.
     """
 
     status: str
@@ -116,6 +123,10 @@ class VpUpdate:
     nis: float = float("nan")
     innovation: np.ndarray = field(default_factory=lambda: np.full(2, np.nan))
     S: np.ndarray = field(default_factory=lambda: np.full((2, 2), np.nan))
+    axis: int | None = None
+    direction_sensor: np.ndarray | None = None
+    direction_cov: np.ndarray | None = None
+    direction_world: np.ndarray | None = None
 
 
 # --------------------------------------------------------------------------- models
@@ -370,11 +381,18 @@ def checked_camera_matrix(K, what: str = "K") -> np.ndarray:
     return K
 
 
-def checked_covariance(P: np.ndarray, what: str) -> np.ndarray:
-    """P symmetrised; EstimationError when it is not finite or not positive definite."""
+def checked_covariance(P: np.ndarray, what: str, semidefinite: bool = False) -> np.ndarray:
+    """P symmetrised; EstimationError when it is not finite or not positive definite
+    (``semidefinite``: not positive semi-definite, up to round-off; a state with a cloned
+    block is singular by construction)."""
     P = 0.5 * (P + P.T)
     if not np.all(np.isfinite(P)):
         raise EstimationError(f"{what} covariance has NaN or inf entries")
+    if semidefinite:
+        values = np.linalg.eigvalsh(P)
+        if values[0] < -1e-9 * max(values[-1], 1e-300):
+            raise EstimationError(f"{what} covariance lost positive semi-definiteness")
+        return P
     try:
         np.linalg.cholesky(P)
     except np.linalg.LinAlgError:

@@ -6,10 +6,12 @@ directions -- but with no parametrisation singularity that an ordinary pose can 
 
 * nominal state: ``T_world_camera`` (gtsam.Pose3) and ``R_world_manhattan`` (3x3, the
   structure's frame; its columns are the world directions of the vanishing points);
-* error state ``x`` (9,): ``[omega, v | delta]`` with
+* error state ``x`` (15,): ``[omega, v | delta | omega_k, v_k]`` with
   ``T_world_camera = T_hat * Exp([omega, v])`` (GTSAM's right perturbation, tangent order
-  [rotation, translation]) and ``R_world_manhattan = R_hat * Exp(delta)``;
-* ``P`` (9x9) is the covariance of ``x``; its top-left 6x6 block *is* the camera pose
+  [rotation, translation]), ``R_world_manhattan = R_hat * Exp(delta)`` and the same for
+  ``T_world_keyframe``, a clone of the camera pose at the last keyframe (stochastic cloning,
+  Roumeliotis & Burdick, ICRA 2002);
+* ``P`` (15x15) is the covariance of ``x``; its top-left 6x6 block *is* the camera pose
   covariance in GTSAM's convention, no Jacobian needed.
 
 filterpy's :class:`~filterpy.kalman.ExtendedKalmanFilter` does the algebra: ``predict``
@@ -21,6 +23,14 @@ error-state Kalman filter", 2017, sec. 6.3).
 Prediction with a VO increment ``U = T_prev_curr`` (right-perturbation covariance
 ``Sigma_U``): ``T' = T U``, so ``xi' = Ad(U^-1) xi + eta`` and ``F = diag(Ad(U^-1), I3)``,
 ``Q = diag(Sigma_U, 0)``. The structure does not move (no process noise on ``delta``).
+
+Prediction from the keyframe (``predict_from_keyframe``) with an increment
+``U = T_keyframe_curr`` measured against the keyframe's image: ``T' = T_k U``, so
+``xi' = Ad(U^-1) xi_k + eta``: the camera's rows of ``F`` take the keyframe's block, and the
+camera's old error is dropped; what the updates since the keyframe taught it has already
+reached the keyframe clone through their cross-covariance. Odometry against a keyframe does
+not accumulate the frame-to-frame errors between keyframes (``set_keyframe`` clones the
+current pose: its block and cross-covariances are copied).
 
 Observation of Manhattan axis ``i`` as a unit direction in the camera:
 ``d = R_camera_world R_world_manhattan e_i``. With both right perturbations,
@@ -53,10 +63,11 @@ from .vp_ekf import (
     unit_directions,
 )
 
-STATE_DIM = 9
+STATE_DIM = 15
 POSE = slice(0, 6)
 ROT = slice(0, 3)
 MANHATTAN = slice(6, 9)
+KEYFRAME = slice(9, 15)
 _DEFAULT_CONFIG = VpEkfConfig(vp_model="manhattan")
 
 
@@ -107,9 +118,10 @@ class VanishingPointESKF(ExtendedKalmanFilter):
 
     Attributes
     ----------
-    x : (9, 1) error state [omega, v, delta], zero between steps
-    P : (9, 9) its covariance; ``P[:6, :6]`` is the pose covariance (GTSAM order)
-    F, Q : the last prediction's Jacobian diag(Ad(U^-1), I) and process noise
+    x : (15, 1) error state [omega, v, delta, omega_k, v_k], zero between steps
+    P : (15, 15) its covariance; ``P[:6, :6]`` is the pose covariance (GTSAM order)
+    F, Q : the last prediction's Jacobian and process noise
+    T_world_keyframe : gtsam.Pose3, the nominal pose of the last keyframe (a clone)
     R : the last measurement noise (2x2, in the tangent basis of the predicted direction)
     K, y, S : gain, innovation and innovation covariance of the last update
     T_world_camera : gtsam.Pose3, the nominal camera pose
@@ -135,6 +147,7 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         self.P = P
         self.R_world_manhattan: np.ndarray | None = None
         self._observed_axes: set[int] = set()
+        self.set_keyframe()
 
     # ------------------------------------------------------------------ accessors
     @property
@@ -161,6 +174,7 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         P is unchanged: both perturbations act on the right (module docstring)."""
         A = as_pose3(T_new_old)
         self.T_world_camera = A.compose(self.T_world_camera)
+        self.T_world_keyframe = A.compose(self.T_world_keyframe)
         if self.R_world_manhattan is not None:
             self.R_world_manhattan = A.rotation().matrix() @ self.R_world_manhattan
 
@@ -182,6 +196,33 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         Q[POSE, POSE] = 0.5 * (cov + cov.T)
         self.F, self.Q = F, Q
         self.predict(u=U)
+        self._finish_step()
+
+    def set_keyframe(self) -> None:
+        """Clone the current pose as the keyframe (nominal, covariance, cross-covariances)."""
+        self.T_world_keyframe = self.T_world_camera
+        P = self.P
+        P[KEYFRAME, :] = P[POSE, :]
+        P[:, KEYFRAME] = P[:, POSE]
+        P[KEYFRAME, KEYFRAME] = P[POSE, POSE]
+        self.P = P
+        self._finish_step()
+
+    def predict_from_keyframe(self, T_keyframe_curr, cov: np.ndarray) -> None:
+        """Predict with an increment measured from the keyframe's image to the current one
+        and its (6, 6) covariance ([rotation, translation], right perturbation)."""
+        U = as_pose3(T_keyframe_curr)
+        cov = np.asarray(cov, dtype=float)
+        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+            raise EstimationError("VO covariance must be a finite 6x6 matrix")
+        F = np.eye(STATE_DIM)
+        F[POSE, POSE] = 0.0
+        F[POSE, KEYFRAME] = U.inverse().AdjointMap()
+        Q = np.zeros((STATE_DIM, STATE_DIM))
+        Q[POSE, POSE] = 0.5 * (cov + cov.T)
+        self.F, self.Q = F, Q
+        self.P = F @ self.P @ F.T + Q
+        self.T_world_camera = self.T_world_keyframe.compose(U)
         self._finish_step()
 
     def predict_lost(self, sigma: tuple[float, float] | None = None) -> None:
@@ -265,11 +306,13 @@ class VanishingPointESKF(ExtendedKalmanFilter):
             return VpUpdate("skipped", "non_finite_innovation")
         if nis > self.config.gate_chi2:
             return VpUpdate("gated", "mahalanobis", nis, z, S)
+        d_world = self.R_world_manhattan[:, axis].copy()  # the prediction, for the graph
         # filterpy needs z as a (2, 1) column (a flat (2,) broadcasts and corrupts x)
         self.update(z.reshape(2, 1), lambda _x: H, lambda _x: np.zeros((2, 1)), R=R)
         self._inject()
         self._observed_axes.add(axis)
-        return VpUpdate("updated", "", nis, z, S)
+        return VpUpdate("updated", "", nis, z, S, axis, np.array(d_meas, dtype=float),
+                        np.array(cov_dir, dtype=float), d_world)
 
     def _inject(self) -> None:
         """Move the error-state correction into the nominal state and reset it to zero."""
@@ -277,6 +320,7 @@ class VanishingPointESKF(ExtendedKalmanFilter):
 
         dx = self.x.reshape(-1)
         self.T_world_camera = self.T_world_camera.compose(gtsam.Pose3.Expmap(dx[POSE]))
+        self.T_world_keyframe = self.T_world_keyframe.compose(gtsam.Pose3.Expmap(dx[KEYFRAME]))
         if self.R_world_manhattan is not None:
             self.R_world_manhattan = self.R_world_manhattan @ so3_exp(dx[MANHATTAN])
         self.x = np.zeros((STATE_DIM, 1))
@@ -302,10 +346,8 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         M = R_camera_manhattan
         self.R_world_manhattan = self.R_world_camera @ M
         P = self.P
-        P[MANHATTAN, :] = 0.0
-        P[:, MANHATTAN] = 0.0
-        P[MANHATTAN, POSE] = M.T @ P[ROT, POSE]
-        P[POSE, MANHATTAN] = P[MANHATTAN, POSE].T
+        P[MANHATTAN, :] = M.T @ P[ROT, :]  # correlated with the pose and the keyframe
+        P[:, MANHATTAN] = P[MANHATTAN, :].T
         P[MANHATTAN, MANHATTAN] = M.T @ P[ROT, ROT] @ M + noise * np.eye(3)
         self.P = P
         self._finish_step()
@@ -316,4 +358,4 @@ class VanishingPointESKF(ExtendedKalmanFilter):
 
     def _finish_step(self) -> None:
         """Symmetrise P and check that it is finite and positive definite."""
-        self.P = checked_covariance(self.P, "ESKF")
+        self.P = checked_covariance(self.P, "ESKF", semidefinite=True)

@@ -86,12 +86,23 @@ COV_CALIBRATION: dict[str, dict[int, tuple[float, tuple]]] = {
 # increment, sigma_rot = a + b |omega|, sigma_trans = c + d |t| (|omega| in rad, |t| in m),
 # isotropic per block. Fitted by maximum likelihood on the real development sequences
 # (../shared/data/rgbd: ICL-NUIM office kt0 and TUM fr1/rpy, 247 pairs of this module's
-# default odometry against ground truth; /tmp scripts reproduced by
-# benchmarks/vpslam_real.py --fit-vo-cov). A scaled inverse information matrix was part of the
+# default odometry against ground truth; benchmarks/vo_covariance.py --gaps 1 --fit). A scaled inverse information matrix was part of the
 # fitted family; its maximum-likelihood weight was zero. Per-sequence NEES of the fit: 2.3 on
 # ICL-NUIM, 8.5 on TUM (mean, 6 expected): errors grow with motion (blur, rolling shutter,
 # colour-depth asynchrony), which the point-to-point information matrix does not see.
 MOTION_COV_MODEL = (8.4e-4, 0.098, 5.0e-4, 0.35)
+
+# The default model ("coupled") keeps those standard deviations and adds the correlations
+# that the scene's geometry implies: a small rotation of the camera and a sideways translation
+# move the image of a distant scene alike, so their errors are correlated (the rotation-
+# translation ambiguity). The correlation matrix of Open3D's inverse information matrix
+# carries that structure; taken whole it is too sharp (a ridge), so it is shrunk towards the
+# identity: corr = (1 - c) I + c corr_info. The mean negative log-likelihood of the
+# frame-to-frame errors (benchmarks/vo_covariance.py; c = 0 is "motion") is best near
+# c = 0.5-0.7 on both development sequences pooled (ICL-NUIM -37.53 -> -37.88, TUM fr1/rpy
+# -30.50 -> -31.04 per pair at 0.5). It matters when the directions correct the rotation:
+# the filter then also corrects the translation that compensated a rotation error.
+COUPLING = 0.5
 
 
 def motion_covariance(T_prev_curr: gtsam.Pose3,
@@ -189,10 +200,15 @@ class OdometryConfig:
         (m, degrees): a dense result further than this from the PnP guess is a failure
         (the dense refinement slid along the corridor).
     cov_model : str
-        "motion" (default): :data:`MOTION_COV_MODEL`, fitted on real RGB-D sequences;
+        "coupled" (default): the standard deviations of :data:`MOTION_COV_MODEL` with the
+        geometry's rotation-translation correlations (see :data:`COUPLING`);
+        "motion": :data:`MOTION_COV_MODEL` alone (no correlations), fitted on real RGB-D
+        sequences;
         "information": ``cov_scale`` x inverse information + ``cov_floor``, from
         :data:`COV_CALIBRATION` (fitted on the simulated corridor, whose VO error is a
         pitch bias coupled with vertical motion: use it on the simulator).
+    coupling : float
+        "coupled" model: weight in [0, 1] of the information matrix's correlations.
     """
 
     backend: str = "tensor"
@@ -214,12 +230,15 @@ class OdometryConfig:
     pnp_corners: int = 300
     pnp_window: int = 15
     max_disagreement: tuple[float, float] = (0.05, 3.0)
-    cov_model: str = "motion"
+    cov_model: str = "coupled"
+    coupling: float = COUPLING
 
     def __post_init__(self):
-        if self.cov_model not in ("motion", "information"):
-            raise PerceptionError(f"cov_model must be 'motion' or 'information', got "
-                                  f"{self.cov_model!r}")
+        if self.cov_model not in ("coupled", "motion", "information"):
+            raise PerceptionError(f"cov_model must be 'coupled', 'motion' or 'information', "
+                                  f"got {self.cov_model!r}")
+        if not 0.0 <= self.coupling <= 1.0:
+            raise PerceptionError(f"coupling must be in [0, 1], got {self.coupling!r}")
 
 
 @dataclass(frozen=True)
@@ -327,8 +346,19 @@ def information_to_covariance(info: np.ndarray, T_prev_curr: gtsam.Pose3,
     cov = Ad(T^-1) cov_left Ad(T^-1)^T, plus the diagonal floor; scale and floor from
     ``config`` or, when it leaves them None, from :data:`COV_CALIBRATION` for ``width``.
     """
-    if (config or OdometryConfig()).cov_model == "motion":
+    cov_model = (config or OdometryConfig()).cov_model
+    if cov_model == "motion":
         return motion_covariance(T_prev_curr)
+    if cov_model == "coupled":
+        if info is None or not np.all(np.isfinite(info)):
+            return motion_covariance(T_prev_curr)
+        adjoint = T_prev_curr.inverse().AdjointMap()
+        shape = adjoint @ np.linalg.inv(info) @ adjoint.T
+        scale = 1.0 / np.sqrt(np.diag(shape))
+        lam = (config or OdometryConfig()).coupling
+        corr = (1.0 - lam) * np.eye(6) + lam * shape * np.outer(scale, scale)
+        sigma = np.sqrt(np.diag(motion_covariance(T_prev_curr)))
+        return corr * np.outer(sigma, sigma)
     cov_scale, cov_floor = covariance_model(width, config)
     cov_left = cov_scale * np.linalg.inv(info)
     adjoint = T_prev_curr.inverse().AdjointMap()

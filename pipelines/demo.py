@@ -100,6 +100,9 @@ def corridor_demo(out_dir: Path, quick: bool = False) -> dict:
             progress=True, odometry_cache=shared_vo, name=f"vpslam_{name}")
     _plot_vp_comparison(results, out_dir / "vpslam_comparison.png")
     summary = {"frames": n_frames, "corridor_length_m": config.length}
+    if results["with_vp"].tree is not None:
+        summary["shared_graph"] = shared_graph_demo(out_dir / "shared_graph", sequence, config,
+                                                    results["with_vp"].graph)
     for name, result in results.items():
         keys = ("ate_aligned_rmse_m", "ate_unaligned_rmse_m", "rot_err_mean_deg",
                 "final_drift_xyz_m", "ms_per_frame_median", "vo_ms_per_frame_median",
@@ -114,6 +117,112 @@ def corridor_demo(out_dir: Path, quick: bool = False) -> dict:
         }
         _plot_map_slice(tree, out_dir / "map_slice.png")
     return summary
+
+
+HEADSET_OFFSET = ((0.25, -0.15, 0.05), (0.15, -0.25, 0.40))  # rad (x, y, z), m: camera frame
+HEADSET_INIT_ERROR = (0.15, 8.0)  # m, deg: the calibration's initial guess is this far off
+
+
+def shared_graph_demo(out_dir: Path, sequence: Path, config, graph) -> dict:
+    """One pose graph: the SLAM run, the headset calibration and the map.
+
+    ``graph`` is the VP-SLAM run's graph (VO between factors, direction factors, the first
+    node's prior, the voxel-filtered scans). A headset looks at the corridor from a pose near
+    the middle of the run (a known offset from the camera's true pose there); its cloud is
+    registered with GICP-SE(3) to the map around the middle node -- the scans of the nodes
+    within +-6 of it, in that node's frame, as the graph places them -- and the result
+    (T_node_headset with its covariance) is a ``calibration`` between factor from that node to
+    a new headset node, which carries the headset cloud as its scan. The whole graph is
+    optimised (LM); the headset pose and its marginal covariance (which includes the SLAM's
+    uncertainty at the anchor node) go to ``headset.json``; the map is fused from the
+    optimised graph (``map.bt``, ``graph.graph``, ``graph.g2o`` + sidecar).
+    """
+    import gtsam
+
+    from estimation.covariance import nees
+    from estimation.fileio import atomic_write
+    from estimation.io import write_g2o, write_scan_graph
+    from estimation.pose_graph import Scan
+    from estimation.registration import Registration, RegistrationConfig
+    from mapping import fuse
+    from perception.rgbd import TumRgbdSequence, backproject, voxel_filter
+    from perception.simulation.corridor import build_corridor_scene, render_frame
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    ids = graph.sorted_ids()
+    anchor = ids[len(ids) // 2]
+    T_world_anchor_gt = TumRgbdSequence(sequence).groundtruth_at(graph.nodes[anchor].timestamp)
+    rotation, translation = HEADSET_OFFSET
+    T_anchor_headset_gt = gtsam.Pose3(gtsam.Rot3.RzRyRx(*rotation), np.array(translation))
+    T_world_headset_gt = T_world_anchor_gt.compose(T_anchor_headset_gt)
+    rng = np.random.default_rng([config.seed, 13])
+    intr = config.intrinsics
+    _, depth = render_frame(build_corridor_scene(config), T_world_headset_gt, intr, rng)
+    headset = voxel_filter(backproject(depth, intr, stride=2), 0.05).astype(float)
+
+    # the map around the anchor, in the anchor's frame, as the graph places the scans
+    T_world_anchor = graph.nodes[anchor].pose
+    window = [j for j in ids if abs(j - anchor) <= 6 and graph.nodes[j].scan is not None]
+    submap = np.vstack([
+        _transform(T_world_anchor.between(graph.nodes[j].pose), graph.nodes[j].scan.points)
+        for j in window])
+    offset = gtsam.Pose3.Expmap(np.r_[_random_unit(rng) * np.radians(HEADSET_INIT_ERROR[1]),
+                                      _random_unit(rng) * HEADSET_INIT_ERROR[0]])
+    init = T_anchor_headset_gt.compose(offset)
+    registration = Registration(headset, voxel_filter(submap, 0.05).astype(float),
+                                RegistrationConfig(max_correspondence_distance=0.1,
+                                                   initial_correspondence_distance=0.5))
+    result = registration.run(init.matrix())
+    summary = {"anchor_node": anchor, "window_nodes": len(window),
+               "headset_points": len(headset), "map_points": len(submap),
+               "initial_offset": f"{HEADSET_INIT_ERROR[0]} m / {HEADSET_INIT_ERROR[1]} deg",
+               "registration_converged": bool(result.converged)}
+    if not result.converged:  # a wrong constraint is worse than none
+        summary["reason"] = result.reason
+        return summary
+    headset_id = ids[-1] + 1
+    graph.add_node(headset_id, T_world_anchor.compose(result.pose),
+                   graph.nodes[anchor].timestamp, scan=Scan(headset.astype(np.float32)),
+                   frame="headset")
+    result.add_to_pose_graph(graph, anchor, headset_id, kind="calibration")
+    optimised = graph.optimize("lm")
+    cov = graph.marginal_covariance(headset_id)
+    T_world_headset = graph.nodes[headset_id].pose
+    xi = gtsam.Pose3.Logmap(T_world_headset.between(T_world_headset_gt))  # T_gt = T Exp(xi)
+    tree = fuse(graph, 0.05, max_range=5.0)
+    write_g2o(out_dir / "graph.g2o", graph)
+    write_scan_graph(out_dir / "graph.graph", graph)
+    tree.write_bt(out_dir / "map.bt")
+    summary.update({
+        "headset_node": headset_id, "factors": graph.factor_counts(),
+        "initial_error": optimised.initial_error, "final_error": optimised.final_error,
+        "T_world_headset": T_world_headset.matrix().tolist(),
+        "covariance": cov.tolist(), "covariance_order": "[rotation, translation], body frame",
+        "sigma_rot_deg": np.degrees(np.sqrt(np.diag(cov)[:3])).tolist(),
+        "sigma_trans_m": np.sqrt(np.diag(cov)[3:]).tolist(),
+        "T_world_headset_gt": T_world_headset_gt.matrix().tolist(),
+        "t_err_m": float(np.linalg.norm(T_world_headset.translation()
+                                        - T_world_headset_gt.translation())),
+        "r_err_deg": float(np.degrees(np.linalg.norm(xi[:3]))),
+        "nees": float(nees(xi, cov)),
+        "registration_covariance": np.asarray(result.covariance).tolist(),
+        "anchor_covariance": graph.marginal_covariance(anchor).tolist(),
+        "map_nodes": int(tree.size()),
+    })
+    with atomic_write(out_dir / "headset.json", "w") as handle:
+        json.dump(summary, handle, indent=2)
+        handle.write("\n")
+    return summary
+
+
+def _transform(T, points: np.ndarray) -> np.ndarray:
+    M = T.matrix()
+    return np.asarray(points, dtype=float) @ M[:3, :3].T + M[:3, 3]
+
+
+def _random_unit(rng) -> np.ndarray:
+    v = rng.normal(size=3)
+    return v / np.linalg.norm(v)
 
 
 def _plot_vp_comparison(results: dict, path: Path) -> None:
@@ -245,6 +354,23 @@ def write_report_md(out_dir: Path, report: dict) -> None:
                       f"leaves, {m['memory_bytes']} B in memory, .bt {m['bt_bytes']} B "
                       f"(vpslam_with_vp/map.bt, .ot beside it).", "",
                       "![map slice](map_slice.png)", ""]
+    shared = (corridor or {}).get("shared_graph")
+    if shared and "headset_node" in shared:
+        sig_r, sig_t = shared["sigma_rot_deg"], shared["sigma_trans_m"]
+        lines += ["## One pose graph: SLAM, headset calibration and map", "",
+                  f"The SLAM run's graph ({shared['factors']}) with the headset registered "
+                  f"(GICP-SE(3), initial offset {shared['initial_offset']}) to the map around "
+                  f"node {shared['anchor_node']}, optimised together (LM, error "
+                  f"{shared['initial_error']:.4g} -> {shared['final_error']:.4g}).", "",
+                  f"Headset pose error {shared['t_err_m'] * 100:.1f} cm / "
+                  f"{shared['r_err_deg']:.2f} deg; marginal 1-sigma rotation "
+                  f"{', '.join(f'{v:.2f}' for v in sig_r)} deg, translation "
+                  f"{', '.join(f'{v * 100:.1f}' for v in sig_t)} cm (NEES "
+                  f"{shared['nees']:.1f}, 6 dof). Files: shared_graph/headset.json, graph.g2o, "
+                  "graph.graph, map.bt.", ""]
+    elif shared:
+        lines += ["## One pose graph: SLAM, headset calibration and map", "",
+                  "The headset registration did not converge: no calibration factor.", ""]
     calibration = report.get("calibration")
     if calibration:
         lines += ["## Robot-headset calibration in the simulated room (Table 1 style)", "",

@@ -36,6 +36,7 @@ from perception.odometry import OdometryConfig
 VP_MODELS = ("manhattan", "point", "none")
 DETECTORS = ("normals+lines", "normals", "lines", "seed")
 WORLD_FRAMES = ("auto", "groundtruth", "manhattan", "camera")
+DIRECTION_FACTORS = ("fixed", "predicted", "none")
 
 
 @dataclass(frozen=True)
@@ -64,8 +65,19 @@ class VpSlamConfig:
     backproject_stride : keep every n-th pixel row/column before the voxel filter
     build_map : False skips scans and octree
     vo_scale : image scale for the RGB-D odometry only (VP and map keep full resolution)
+    keyframes : False (default): frame-to-frame odometry (the paper); True: the odometry
+        measures each frame against the last keyframe, whose pose the filter clones, so
+        frame-to-frame errors do not accumulate between keyframes (docs/vp_ekf.md). Needs a
+        filter with ``set_keyframe``/``predict_from_keyframe`` (the error-state one); others
+        run frame to frame.
+    keyframe_translation, keyframe_rotation_deg : m, degrees; a frame further than this from
+        the keyframe (filtered poses) becomes the next keyframe
     estimator : name of a registered filter estimator (``octofactor plugins``) whose
         ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter
+    direction_factors : each direction the filter accepted becomes a graph direction factor
+        whose world direction is the filter's prediction of the structure axis at that
+        update ("predicted", default), the axis as the filter estimated it when it was first
+        accepted ("fixed"), or no factor ("none"); docs/vp_ekf.md ("The pose graph")
     """
 
     vp_model: str = "manhattan"
@@ -80,11 +92,16 @@ class VpSlamConfig:
     backproject_stride: int = 4
     build_map: bool = True
     vo_scale: float = 1.0
+    keyframes: bool = False
+    keyframe_translation: float = 0.03
+    keyframe_rotation_deg: float = 3.0
     estimator: str = "vp_ekf"
+    direction_factors: str = "predicted"
 
     def __post_init__(self):
         for name, allowed in (("vp_model", VP_MODELS), ("detector", DETECTORS),
-                              ("world_frame", WORLD_FRAMES)):
+                              ("world_frame", WORLD_FRAMES),
+                              ("direction_factors", DIRECTION_FACTORS)):
             if getattr(self, name) not in allowed:
                 raise OctofactorError(f"{name} must be one of {', '.join(allowed)}, got "
                                       f"{getattr(self, name)!r}")
@@ -104,7 +121,7 @@ class VpSlamConfig:
         local frame (first body frame at the origin); poses are mapped to the world frame."""
         base = cls(vp_model="point", detector="seed", world_frame="auto",
                    ekf=VpEkfConfig(vp_model="point", state="euler"),
-                   odometry=OdometryConfig(cov_model="information"))
+                   odometry=OdometryConfig(cov_model="information"), keyframes=False)
         return replace(base, **changes)
 
     def to_dict(self) -> dict:
@@ -152,7 +169,8 @@ class VpSlam:
 
     Attributes
     ----------
-    graph : estimation.PoseGraph, a node per frame, VO between factors, scans
+    graph : estimation.PoseGraph, a node per frame, VO between factors, a direction factor
+        per accepted direction, scans
     filter : the filter (None before the first frame)
     counts : Counter of updates, gated directions, detections
     world_frame : which world frame was used ("groundtruth", "manhattan", "camera")
@@ -179,9 +197,13 @@ class VpSlam:
         self._cache = odometry_cache
         self._reused_ms = 0.0      # VO time of a cached result, counted in this frame
         self._prev = None          # (index, frame at the VO scale)
+        self._partner = None       # the frame the odometry measures against: the keyframe
         self._prev_node = None
-        self._T_guess = None       # last VO increment: the guess and the failure motion
+        self._T_guess = None       # last increment: the guess and the failure motion
         self._gap = None           # (T, cov) predicted over unreadable frames since the node
+        self._accepted = []        # this frame's accepted directions (VpUpdate), for the graph
+        self._axes_world = {}      # "fixed" direction factors: axis -> world direction
+        self._prior = None         # the first node's prior factor (moved when levelling)
         s_rot, s_trans = config.ekf.vo_failure_sigma
         self._failure_cov = np.diag([s_rot ** 2] * 3 + [s_trans ** 2] * 3)
 
@@ -193,15 +215,20 @@ class VpSlam:
         t0 = time.perf_counter()
         frame_vo = self._vo_frame(frame)
         vo = None
+        partner = None
         if self.filter is None:
             self._start(frame)
         else:
-            vo = self._odometry(frame, frame_vo, notes)
-            if vo is not None and vo.success:
+            T_before = self.filter.T_world_camera
+            vo, partner = self._odometry(frame, frame_vo, notes)
+            if vo is not None and vo.success and self._keyframes:
+                self.filter.predict_from_keyframe(vo.T_prev_curr, vo.cov)
+            elif vo is not None and vo.success:
                 self.filter.predict_vo(vo.T_prev_curr, vo.cov)
-                self._T_guess = vo.T_prev_curr
             else:
                 self.filter.predict_vo(self._T_guess, self._failure_cov)
+            if vo is not None and vo.success:
+                self._T_guess = T_before.between(self.filter.T_world_camera)
         # a VO result reused from the cache counts the time it took when it was computed
         ms["vo_reused"] = self._reused_ms
         ms["vo"] = (time.perf_counter() - t0) * 1e3 + self._reused_ms
@@ -209,6 +236,8 @@ class VpSlam:
 
         t1 = time.perf_counter()
         outcomes, n_detected = self._directions(frame, notes)
+        self._accepted = [o for o in outcomes
+                          if o.status == "updated" and o.direction_sensor is not None]
         self._maybe_level_world()
         ms["vp_ekf"] = (time.perf_counter() - t1) * 1e3
 
@@ -217,8 +246,9 @@ class VpSlam:
         ms["scan"] = (time.perf_counter() - t2) * 1e3
         T_world_camera = self._T_world_local.compose(self.filter.T_world_camera)
         cov_pose = self.filter.pose_covariance()  # right perturbation: unchanged by the map
-        self._add_node(frame, T_world_camera, cov_pose, scan, vo)
+        self._add_node(frame, T_world_camera, cov_pose, scan, vo, partner)
         self._prev = (frame.index, frame_vo)
+        self._next_keyframe(vo, partner)
         return FrameResult(frame.index, frame.timestamp, T_world_camera, cov_pose, vo,
                            outcomes, n_detected, notes, ms)
 
@@ -229,7 +259,9 @@ class VpSlam:
         self.filter.predict_vo(self._T_guess, self._failure_cov)
         T, cov = self._gap
         self._gap = (T.compose(self._T_guess), cov + self._failure_cov)
-        self._prev = None  # the next VO has no partner
+        self._prev = None  # the next VO has no previous frame; a keyframe stays valid
+        if not self._keyframes:
+            self._partner = None
 
     # ------------------------------------------------------------------ stages
     def _start(self, frame) -> None:
@@ -267,28 +299,69 @@ class VpSlam:
         self._T_guess = gtsam.Pose3()
         self._gap = (gtsam.Pose3(), np.zeros((6, 6)))
 
-    def _odometry(self, frame, frame_vo, notes):
-        from perception.odometry import rgbd_odometry
+    @property
+    def _keyframes(self) -> bool:
+        """Odometry against keyframes (needs a filter that clones them)."""
+        return self.config.keyframes and hasattr(self.filter, "predict_from_keyframe")
 
-        if self._prev is None:
+    def _odometry(self, frame, frame_vo, notes):
+        """(odometry result or None, index of the frame it measured from or None).
+
+        Against the keyframe when keyframes are on (else the previous frame); when that
+        fails, the previous frame becomes the keyframe and is tried."""
+        if self._partner is None:
             notes.append("vo: no previous frame")
-            return None
-        prev_index, prev_vo = self._prev
-        key = (prev_index, frame.index, self.config.vo_scale, self.config.odometry)
-        if self._cache is not None and key in self._cache:
-            vo = self._cache[key]
-            self._reused_ms = float(getattr(vo, "ms", 0.0))
-        else:
-            try:
-                vo = rgbd_odometry(prev_vo, frame_vo, self.vo_intrinsics, T_init=self._T_guess,
-                                   config=self.config.odometry)
-            except OctofactorError as exc:
-                vo = _VoFailure(f"error: {type(exc).__name__}")
-            if self._cache is not None:
-                self._cache[key] = vo
+            return None, None
+        index, partner_vo = self._partner
+        guess = self._T_guess
+        if self._keyframes:  # from the keyframe to the previous frame, then constant velocity
+            guess = self.filter.T_world_keyframe.between(self.filter.T_world_camera
+                                                         ).compose(guess)
+        vo = self._vo_pair(index, partner_vo, frame, frame_vo, guess)
+        if not vo.success and self._keyframes and self._prev is not None \
+                and self._prev[0] != index:
+            self.counts["vo_keyframe_retries"] += 1
+            self.filter.set_keyframe()
+            self._partner = self._prev
+            index, partner_vo = self._prev
+            vo = self._vo_pair(index, partner_vo, frame, frame_vo, self._T_guess)
         if not vo.success:
             notes.append(f"vo: {_reason_class(vo.reason)}")
+            return vo, None
+        return vo, index
+
+    def _vo_pair(self, index, partner_vo, frame, frame_vo, guess):
+        from perception.odometry import rgbd_odometry
+
+        key = (index, frame.index, self.config.vo_scale, self.config.odometry)
+        if self._cache is not None and key in self._cache:
+            vo = self._cache[key]
+            self._reused_ms += float(getattr(vo, "ms", 0.0))
+            return vo
+        try:
+            vo = rgbd_odometry(partner_vo, frame_vo, self.vo_intrinsics, T_init=guess,
+                               config=self.config.odometry)
+        except OctofactorError as exc:
+            vo = _VoFailure(f"error: {type(exc).__name__}")
+        if self._cache is not None:
+            self._cache[key] = vo
         return vo
+
+    def _next_keyframe(self, vo, partner) -> None:
+        """Frame to frame: every frame is the next partner. With keyframes: the current frame
+        becomes the keyframe when the odometry failed or it moved too far from the keyframe."""
+        if not self._keyframes:
+            self._partner = self._prev
+            return
+        cfg = self.config
+        if partner is not None:
+            xi = self.filter.T_world_keyframe.localCoordinates(self.filter.T_world_camera)
+            if (np.linalg.norm(xi[3:]) <= cfg.keyframe_translation
+                    and np.degrees(np.linalg.norm(xi[:3])) <= cfg.keyframe_rotation_deg):
+                return
+        self.filter.set_keyframe()
+        self._partner = self._prev
+        self.counts["keyframes"] += 1
 
     def _directions(self, frame, notes) -> tuple[list, int]:
         """Detect the structure's directions and update the filter; (outcomes, detected)."""
@@ -363,6 +436,12 @@ class VpSlam:
         self.filter.reanchor(A)
         for node in self.graph.nodes.values():  # frames before the structure was found
             node.pose = A.compose(node.pose)
+        if self._prior is not None:  # the first node's prior moves with it
+            self.graph.factors = [f for f in self.graph.factors if f is not self._prior]
+            first = self.graph.nodes[self._prior.nodes[0]]
+            self._prior = self.graph.add_prior(first.id, first.pose, self._prior.covariance)
+        self._accepted = [replace(o, direction_world=R_new_old @ o.direction_world)
+                          for o in self._accepted]
         self.world_frame = "manhattan"
 
     def _scan(self, frame):
@@ -373,23 +452,35 @@ class VpSlam:
         points = voxel_filter(points, self.config.voxel_size)
         return Scan(points) if len(points) else None
 
-    def _add_node(self, frame, T_world_camera, cov_pose, scan, vo) -> None:
+    def _add_node(self, frame, T_world_camera, cov_pose, scan, vo, partner) -> None:
         graph = self.graph
         graph.add_node(frame.index, T_world_camera, frame.timestamp, scan=scan, cov=cov_pose)
         if self._prev_node is None:
-            graph.add_prior(frame.index, T_world_camera, cov_pose)
-        else:
-            if vo is not None and vo.success:
-                step_T, step_cov = vo.T_prev_curr, vo.cov
-            else:
-                step_T, step_cov = self._T_guess, self._failure_cov
+            self._prior = graph.add_prior(frame.index, T_world_camera, cov_pose)
+        elif partner is not None:  # the odometry's own measurement, keyframe to frame
+            graph.add_between(partner, frame.index, vo.T_prev_curr, vo.cov)
+        else:  # constant velocity since the last node, over any unreadable frames
             gap_T, gap_cov = self._gap
-            graph.add_between(self._prev_node, frame.index, gap_T.compose(step_T),
-                              gap_cov + step_cov)
+            graph.add_between(self._prev_node, frame.index, gap_T.compose(self._T_guess),
+                              gap_cov + self._failure_cov)
+        self._add_directions(frame.index)
         import gtsam
 
         self._gap = (gtsam.Pose3(), np.zeros((6, 6)))
         self._prev_node = frame.index
+
+    def _add_directions(self, node_id: int) -> None:
+        """A direction factor per direction the filter accepted in this frame, with the
+        covariance the filter used. The world direction is the filter's estimate of the
+        structure axis (docs/vp_ekf.md, "The pose graph")."""
+        mode = self.config.direction_factors
+        for outcome in self._accepted if mode != "none" else ():
+            d_world = outcome.direction_world
+            if mode == "fixed":
+                d_world = self._axes_world.setdefault(outcome.axis, d_world)
+            self.graph.add_direction(node_id, outcome.direction_sensor, d_world,
+                                     outcome.direction_cov)
+        self._accepted = []
 
 
 def level_rotation(R_world_camera: np.ndarray, R_world_manhattan: np.ndarray) -> np.ndarray:
@@ -643,9 +734,35 @@ def _report(config, slam, results, skipped_frames, skipped_list, notes_count, ti
         "final_position_sigma_m": np.sqrt(np.diag(final_position_cov)).tolist(),
         "config": config.to_dict(),
     }
+    report["keyframes"] = int(slam.counts["keyframes"]) if slam._keyframes else None
     metrics = sequence_metrics(sequence, stamps, T)
     report.update(metrics)
+    report.update(pose_nees(sequence, results) if slam.world_frame == "groundtruth"
+                  else {"pose_nees_mean": None, "pose_nees_in_95": None})
     return report
+
+
+def pose_nees(sequence, results) -> dict:
+    """Mean pose NEES (6 dof) against ground truth and the share of frames inside the 95 %
+    chi-square bound: the filter's honesty on real data (world frame = ground truth's)."""
+    import gtsam
+    from scipy.stats import chi2
+
+    nees = []
+    for r in results:
+        gt = sequence.groundtruth_at(r.timestamp)
+        if gt is None:
+            continue
+        xi = gtsam.Pose3.Logmap(r.T_world_camera.between(gt))
+        try:
+            nees.append(float(xi @ np.linalg.solve(r.cov_pose, xi)))
+        except np.linalg.LinAlgError:
+            continue
+    if not nees:
+        return {"pose_nees_mean": None, "pose_nees_in_95": None}
+    nees = np.array(nees)
+    return {"pose_nees_mean": float(np.mean(nees)),
+            "pose_nees_in_95": float(np.mean(nees <= chi2.ppf(0.95, 6)))}
 
 
 METRIC_KEYS = ("matched", "ate_aligned_rmse_m", "ate_unaligned_rmse_m",

@@ -32,9 +32,14 @@ def register(add_command) -> None:
     parser.add_argument("--world-frame", choices=("auto", "groundtruth", "manhattan", "camera"),
                         default=None, help="auto (default): ground truth of the first frame, "
                                            "else the level Manhattan frame (docs/vp_ekf.md)")
-    parser.add_argument("--vo-cov", choices=("motion", "information"), default=None,
-                        help="odometry covariance: motion (default, fitted on real RGB-D) or "
-                             "information (fitted on the simulated corridor)")
+    parser.add_argument("--vo-cov", choices=("coupled", "motion", "information"), default=None,
+                        help="odometry covariance: coupled (default: fitted on real RGB-D, with "
+                             "the geometry's rotation-translation correlations), motion (the "
+                             "same sigmas, uncorrelated) or information (fitted on the "
+                             "simulated corridor)")
+    parser.add_argument("--keyframes", action="store_true",
+                        help="odometry against keyframes (cloned in the filter) instead of "
+                             "frame to frame (docs/vp_ekf.md)")
     parser.add_argument("--paper", action="store_true",
                         help="the seed paper's system: Euler state, point model, seed detector, "
                              "first body frame, simulator-fitted VO covariance (flags after it "
@@ -52,6 +57,12 @@ def register(add_command) -> None:
     parser.add_argument("--max-frames", type=int, default=None, help="use the first N frames")
     parser.add_argument("--estimator", default="vp_ekf", metavar="NAME",
                         help="filter estimator from `octofactor plugins` (vp_ekf)")
+    parser.add_argument("--direction-factors", choices=("predicted", "fixed", "none"),
+                        default=None,
+                        help="graph.g2o gets a direction factor per direction the filter "
+                             "accepted, its world direction the filter's prediction of the "
+                             "axis (predicted, default), the axis when first accepted (fixed), "
+                             "or none (docs/vp_ekf.md)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(func=run)
 
@@ -98,6 +109,8 @@ def run(args) -> int:
     ekf = replace(ekf, vp_distance=args.vp_distance)
     if args.vo_cov is not None:
         odometry = replace(odometry, cov_model=args.vo_cov)
+    if args.keyframes:
+        config = replace(config, keyframes=True)
     vp_model = "none" if args.no_vp else (config.vp_model if args.paper and
                                           args.vp_model == "manhattan" else args.vp_model)
     changes = dict(vp_model=vp_model, ekf=ekf, odometry=odometry,
@@ -109,6 +122,8 @@ def run(args) -> int:
         changes["detector"] = "normals+lines"
     if args.world_frame is not None:
         changes["world_frame"] = args.world_frame
+    if args.direction_factors is not None:
+        changes["direction_factors"] = args.direction_factors
     config = replace(config, **changes)
     result = run_vpslam(args.seq_dir, args.out, config, intrinsics=intrinsics,
                         progress=not args.quiet, max_frames=args.max_frames,

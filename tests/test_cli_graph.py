@@ -89,15 +89,48 @@ def test_demo_writes_pose_graph_outputs(tmp_path):
     assert summary.ate_optimized_m < summary.ate_initial_m
 
 
-@pytest.mark.slow
-def test_quick_demo_writes_every_stage(tmp_path):
-    from pipelines.cli import main as cli_main
+@pytest.fixture(scope="module")
+def quick_demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    assert main(["demo", "--quick", "-o", str(out)]) == 0
+    return out
 
-    assert cli_main(["demo", "--quick", "-o", str(tmp_path)]) == 0
+
+@pytest.mark.slow
+def test_quick_demo_writes_every_stage(quick_demo):
+    tmp_path = quick_demo
     report = (tmp_path / "report.md").read_text()
     for heading in ("Pose graph", "VP-EKF SLAM", "Octree map", "calibration", "Consistency"):
         assert heading in report
     for name in ("pose_graph.png", "vpslam_comparison.png", "map_slice.png",
                  "vpslam_with_vp/map.bt", "vpslam_with_vp/map.ot", "vpslam_with_vp/trajectory.txt",
-                 "report.json"):
+                 "report.json", "shared_graph/headset.json", "shared_graph/graph.g2o",
+                 "shared_graph/graph.graph", "shared_graph/map.bt"):
         assert (tmp_path / name).stat().st_size > 0
+    assert "One pose graph: SLAM, headset calibration and map" in report
+
+
+@pytest.mark.slow
+def test_quick_demo_headset_pose_and_marginal_come_from_the_one_graph(quick_demo):
+    """The demo's headset.json: the headset pose near the truth, and its covariance the
+    marginal of the saved joint graph (SLAM factors + calibration factor)."""
+    import json
+
+    tmp_path = quick_demo
+    headset = json.loads((tmp_path / "shared_graph" / "headset.json").read_text())
+    assert headset["registration_converged"]
+    assert headset["t_err_m"] < 0.05 and headset["r_err_deg"] < 1.0
+    cov = np.array(headset["covariance"])
+    assert cov.shape == (6, 6) and np.all(np.linalg.eigvalsh(cov) > 0)
+    graph = read_g2o(tmp_path / "shared_graph" / "graph.g2o")
+    kinds = graph.factor_counts()
+    assert kinds["prior"] == 1 and kinds["direction"] > 10
+    node = headset["headset_node"]
+    assert len(graph.nodes) == node + 1
+    np.testing.assert_allclose(graph.nodes[node].pose.matrix(), headset["T_world_headset"],
+                               atol=1e-9)
+    np.testing.assert_allclose(graph.marginal_covariance(node), cov, rtol=1e-6, atol=1e-14)
+    # the joint marginal includes the SLAM's uncertainty at the anchor: wider than the
+    # registration alone
+    registration = np.array(headset["registration_covariance"])
+    assert np.trace(cov[3:, 3:]) > np.trace(registration[3:, 3:])

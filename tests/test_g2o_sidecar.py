@@ -1,5 +1,6 @@
-"""The g2o sidecar X.g2o.json: what g2o cannot hold (timestamps, node covariances, direction
-factors) survives a write -> read; a sidecar that lies is an error; no made-up timestamps."""
+"""The g2o sidecar X.g2o.json: what g2o cannot hold (timestamps, node covariances, priors,
+direction factors) survives a write -> read; a sidecar that lies is an error; no made-up
+timestamps."""
 from __future__ import annotations
 
 import json
@@ -40,7 +41,22 @@ def _graph(rng, stamps, n_directions=3) -> PoseGraph:
         d_world = pg.nodes[k].pose.rotation().matrix() @ d_sensor + rng.normal(size=3) * 0.05
         B = rng.normal(size=(3, 3))
         pg.add_direction(k, d_sensor, d_world, B @ B.T * 1e-4)
+    A = rng.normal(size=(6, 6))
+    pg.add_prior(0, pg.nodes[0].pose.compose(gtsam.Pose3.Expmap(rng.normal(size=6) * 0.01)),
+                 A @ A.T * 1e-4 + np.eye(6) * 1e-8)
     return pg
+
+
+def _assert_same_priors(back: PoseGraph, pg: PoseGraph) -> None:
+    original = [r for r in pg.factors if r.kind == "prior"]
+    read = [r for r in back.factors if r.kind == "prior"]
+    assert len(read) == len(original) == 1
+    values = pg.values()
+    for a, b in zip(original, read):
+        assert a.nodes == b.nodes
+        assert b.measured.equals(a.measured, 1e-12)
+        np.testing.assert_array_equal(b.covariance, a.covariance)
+        assert b.factor.error(values) == pytest.approx(a.factor.error(values), rel=1e-9)
 
 
 def _assert_same_directions(back: PoseGraph, pg: PoseGraph) -> None:
@@ -76,7 +92,8 @@ def test_sidecar_round_trip_is_exact(tmp_path_factory, stamps, seed):
         else:
             np.testing.assert_array_equal(back.nodes[k].cov, pg.nodes[k].cov)
     _assert_same_directions(back, pg)
-    assert back.factor_counts() == {"odometry": len(stamps) - 1, "direction": 3}
+    _assert_same_priors(back, pg)
+    assert back.factor_counts() == {"odometry": len(stamps) - 1, "direction": 3, "prior": 1}
 
 
 def test_sidecar_name_and_schema(tmp_path):
@@ -85,7 +102,7 @@ def test_sidecar_name_and_schema(tmp_path):
     assert g2o_sidecar_path(tmp_path / "run.g2o") == tmp_path / "run.g2o.json"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run.g2o", "run.g2o.json"]
     document = json.loads((tmp_path / "run.g2o.json").read_text())
-    assert document["format"] == "octofactor-g2o-sidecar" and document["version"] == 1
+    assert document["format"] == "octofactor-g2o-sidecar" and document["version"] == 2
     assert document["g2o"] == "run.g2o"
     assert [n["id"] for n in document["nodes"]] == [0, 1]
     assert document["nodes"][0]["timestamp"] == 1305031102.175304
@@ -93,6 +110,21 @@ def test_sidecar_name_and_schema(tmp_path):
     direction = document["directions"][0]
     assert set(direction) == {"node", "direction_sensor", "direction_world", "cov",
                               "cov_tangent"}
+    prior = document["priors"][0]
+    assert set(prior) == {"node", "kind", "pose", "cov"} and prior["node"] == 0
+
+
+def test_version_1_sidecar_without_priors_is_still_read(tmp_path):
+    pg = _graph(np.random.default_rng(3), [1.0, 2.0, 3.0])
+    write_g2o(tmp_path / "g.g2o", pg)
+    sidecar = tmp_path / "g.g2o.json"
+    document = json.loads(sidecar.read_text())
+    document["version"] = 1
+    del document["priors"]
+    sidecar.write_text(json.dumps(document))
+    back = read_g2o(tmp_path / "g.g2o")
+    assert back.factor_counts() == {"odometry": 2, "direction": 3}
+    _assert_same_directions(back, pg)
 
 
 def test_direction_factors_still_optimise_after_a_round_trip(tmp_path):
@@ -137,7 +169,14 @@ def _set(path: str, value):
 @pytest.mark.parametrize("edit, message", [
     ('{"format": "octofactor-g2o-sidecar", "nodes": [', r"g.g2o.json:1: not valid JSON"),
     ("[]", "not an octofactor g2o sidecar"),
-    (_set("version", 2), "sidecar version 2"),
+    (_set("version", 3), "sidecar version 3"),
+    (_set("version", True), "sidecar version True"),
+    (_set("priors", {}), "'priors' must be a list"),
+    (_set("priors/0/node", 9), r"priors\[0\].node must be a node id"),
+    (_set("priors/0/pose", [0.0] * 6), r"priors\[0\].pose must be an array of shape \(7,\)"),
+    (_set("priors/0/pose", [0.0] * 7),
+     r"priors\[0\].pose: quaternion qx qy qz qw has norm 0, not 1"),
+    (_set("priors/0/cov", np.diag([1.0, 1, 1, 1, 1, -1]).tolist()), "not positive definite"),
     (_set("nodes/2/id", 7), r"node ids do not match the g2o file .*only in the sidecar: \[7\]"),
     (lambda d: d["nodes"].pop(), r"node ids do not match .*only in the g2o file: \[2\]"),
     (_set("nodes/1/id", 0), "duplicate ids"),

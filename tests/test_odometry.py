@@ -189,3 +189,32 @@ def test_tensor_and_legacy_backends_agree(frames):
     with pytest.raises(PerceptionError, match="unknown odometry method"):
         rgbd_odometry(frames[1], frames[2], CONFIG.intrinsics,
                       config=OdometryConfig(method="ransac"))
+
+
+def test_coupled_covariance_keeps_the_motion_sigmas_and_adds_the_geometry_correlation():
+    """The default VO covariance: motion-model sigmas, correlations shrunk from Open3D's
+    information matrix (a fronto-parallel wall: pitch and vertical translation trade off)."""
+    from perception.odometry import information_to_covariance, motion_covariance
+
+    rng = np.random.default_rng(5)
+    # information of unit-variance points on a wall at z = 2 m (left perturbation)
+    points = np.column_stack([rng.uniform(-1, 1, 500), rng.uniform(-0.7, 0.7, 500),
+                              np.full(500, 2.0)])
+    J = np.zeros((len(points), 3, 6))
+    for k, p in enumerate(points):
+        J[k, :, :3] = -np.array([[0, -p[2], p[1]], [p[2], 0, -p[0]], [-p[1], p[0], 0]])
+        J[k, :, 3:] = np.eye(3)
+    info = np.einsum("kij,kil->jl", J, J)
+    T = gtsam.Pose3(gtsam.Rot3.Rx(0.01), np.array([0.0, 0.0, 0.02]))
+    motion = motion_covariance(T)
+    off = information_to_covariance(info, T, OdometryConfig(cov_model="coupled", coupling=0.0))
+    np.testing.assert_allclose(off, motion, rtol=1e-12)
+    cov = information_to_covariance(info, T, OdometryConfig())  # default: coupled, 0.5
+    np.testing.assert_allclose(np.diag(cov), np.diag(motion), rtol=1e-9)
+    np.linalg.cholesky(cov)
+    corr = cov / np.sqrt(np.outer(np.diag(cov), np.diag(cov)))
+    # rotation about x and translation along y explain the same image motion: correlated
+    assert abs(corr[0, 4]) > 0.3
+    assert abs(corr[0, 5]) < 0.05  # depth translation is not
+    with pytest.raises(PerceptionError):
+        OdometryConfig(coupling=1.5)

@@ -28,7 +28,8 @@ def test_direction_jacobian_matches_numerical_derivative():
             Rc = R_wc @ gtsam.Pose3.Expmap(dx[:6]).rotation().matrix()
             Rm = R_wm @ so3_exp(dx[6:])
             numeric[:, k] = ((Rc.T @ Rm)[:, axis] - d0) / eps
-        np.testing.assert_allclose(H, numeric, atol=1e-6)
+        np.testing.assert_allclose(H[:, :9], numeric, atol=1e-6)
+        assert not H[:, 9:].any()  # the keyframe clone is not observed
 
 
 def _rotations_every_90_deg():
@@ -108,6 +109,75 @@ def test_pose_covariance_is_consistent_and_a_mistuned_filter_fails():
     assert lo <= nees.mean() <= hi, nees.mean()
     # negative control: a VO covariance 10x too small must fail the same check
     assert _nees_runs(0.1).mean() > hi
+
+
+def test_predicting_from_the_previous_frame_as_keyframe_is_frame_to_frame():
+    """set_keyframe + predict_from_keyframe(U) == predict_vo(U) on the camera and structure."""
+    rng = np.random.default_rng(4)
+    filters = []
+    for _ in range(2):
+        f = VanishingPointESKF(K, gtsam.Pose3(), np.diag([1e-4] * 6),
+                               VpEkfConfig(vp_model="manhattan"))
+        f.update_directions(np.eye(3))
+        filters.append(f)
+    a, b = filters
+    for _ in range(3):
+        U = gtsam.Pose3.Expmap(rng.normal(scale=0.1, size=6))
+        cov = np.diag(rng.uniform(1e-5, 1e-3, size=6))
+        a.predict_vo(U, cov)
+        b.set_keyframe()
+        b.predict_from_keyframe(U, cov)
+        assert a.T_world_camera.equals(b.T_world_camera, 1e-12)
+        np.testing.assert_allclose(a.P[:9, :9], b.P[:9, :9], rtol=1e-10, atol=1e-14)
+
+
+def _keyframe_nees_runs(model_scale: float, n_runs: int = 40, n_steps: int = 24,
+                        every: int = 4) -> np.ndarray:
+    """Mean pose NEES at the last step: odometry against a keyframe every ``every`` frames,
+    directions with 2 mrad noise, the keyframe cloned in the filter."""
+    sigma_dir = 2e-3
+    cov_vo = np.diag([1e-3] * 3 + [5e-3] * 3) ** 2
+    values = []
+    for seed in range(n_runs):
+        rng = np.random.default_rng(100 + seed)
+        R_wm = so3_exp(rng.normal(size=3))
+        T = T_kf = gtsam.Pose3()
+        f = VanishingPointESKF(K, T, np.diag([1e-10] * 6),
+                               VpEkfConfig(vp_model="manhattan", gate_chi2=np.inf,
+                                           direction_sigma=sigma_dir))
+        for step in range(1, n_steps + 1):
+            T = T.compose(gtsam.Pose3(gtsam.Rot3.Rz(0.02), np.array([0.02, 0.0, 0.1])))
+            noise = gtsam.Pose3.Expmap(rng.multivariate_normal(np.zeros(6), cov_vo))
+            f.predict_from_keyframe(T_kf.between(T).compose(noise), cov_vo * model_scale)
+            dirs = (T.rotation().matrix().T @ R_wm).T
+            noisy = [d + rng.normal(scale=sigma_dir, size=3) for d in dirs]
+            f.update_directions(np.array([n / np.linalg.norm(n) for n in noisy]))
+            if step % every == 0:
+                f.set_keyframe()
+                T_kf = T
+        err = f.T_world_camera.localCoordinates(T)
+        values.append(err @ np.linalg.solve(f.pose_covariance(), err))
+    return np.array(values)
+
+
+def test_keyframe_odometry_is_consistent_and_a_mistuned_filter_fails():
+    lo, hi = chi2_bounds(6, 40)
+    nees = _keyframe_nees_runs(1.0)
+    assert lo <= nees.mean() <= hi, nees.mean()
+    assert _keyframe_nees_runs(0.1).mean() > hi
+
+
+def test_keyframe_odometry_drifts_less_than_summing_its_increments():
+    """The point of cloning: between keyframes the odometry's errors do not add up."""
+    f = VanishingPointESKF(K, gtsam.Pose3(), np.diag([1e-10] * 6),
+                           VpEkfConfig(vp_model="manhattan"))
+    cov_vo = np.diag([1e-3] * 3 + [5e-3] * 3) ** 2
+    T = gtsam.Pose3()
+    for _ in range(8):  # 8 frames against one keyframe: one increment's uncertainty
+        T = T.compose(gtsam.Pose3(gtsam.Rot3(), np.array([0.0, 0.0, 0.05])))
+        f.predict_from_keyframe(T, cov_vo)
+    A = T.inverse().AdjointMap()
+    np.testing.assert_allclose(f.pose_covariance(), cov_vo + A @ A.T * 1e-10, rtol=1e-9)
 
 
 def test_gating_rejects_a_wrong_direction():

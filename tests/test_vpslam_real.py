@@ -30,7 +30,7 @@ def icl_runs(tmp_path_factory):
     base = tmp_path_factory.mktemp("icl")
     return {name: _run(ICL, base / name, *flags) for name, flags in (
         ("default", ()), ("no_vp", ("--no-vp",)), ("lines", ("--detector", "lines")),
-        ("normals", ("--detector", "normals")))}
+        ("normals", ("--detector", "normals")), ("keyframes", ("--keyframes",)))}
 
 
 def test_the_vp_update_reduces_the_rotation_drift_on_icl(icl_runs):
@@ -43,6 +43,16 @@ def test_the_vp_update_reduces_the_rotation_drift_on_icl(icl_runs):
     # each direction source alone helps too
     for name in ("lines", "normals"):
         assert icl_runs[name]["rot_err_mean_deg"] < no_vp["rot_err_mean_deg"]
+
+
+def test_keyframe_odometry_runs_and_keeps_the_rotation(icl_runs):
+    """--keyframes: fewer keyframes than frames, the same directions, ATE near frame to frame
+    (measured on 40 frames: within 15 %)."""
+    kf, default = icl_runs["keyframes"], icl_runs["default"]
+    assert default["keyframes"] is None
+    assert 1 <= kf["keyframes"] < kf["frames"] // 2
+    assert kf["rot_err_mean_deg"] < 0.5 * icl_runs["no_vp"]["rot_err_mean_deg"]
+    assert kf["ate_aligned_rmse_m"] < 1.5 * default["ate_aligned_rmse_m"]
 
 
 def test_report_is_evo_style_with_groundtruth(icl_runs):
@@ -88,3 +98,34 @@ def test_a_corrupt_frame_is_named_skipped_and_counted(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "skipped frame 2" in err and names[2].split("/")[-1] in err
     assert report["frames"] == 4 and sum(report["skipped_frames"].values()) == 1
+
+
+@pytest.fixture(scope="module")
+def tum_runs():
+    """tum_fr1_rpy, all 150 frames, three filters on one shared odometry."""
+    from dataclasses import replace
+
+    from perception.rgbd import CameraIntrinsics
+    from pipelines.vpslam import VpSlamConfig, run_vpslam
+
+    intr = CameraIntrinsics(*(float(v) for v in TUM_K.split(",")), 640, 480, 5000.0)
+    cache: dict = {}
+    default = VpSlamConfig(build_map=False)
+    configs = {"default": default,
+               "motion": replace(default, odometry=replace(default.odometry,
+                                                           cov_model="motion")),
+               "no_vp": replace(default, vp_model="none")}
+    return {name: run_vpslam(TUM, None, config, intrinsics=intr, progress=False,
+                             odometry_cache=cache).report for name, config in configs.items()}
+
+
+def test_directions_improve_rotation_and_translation_on_tum(tum_runs):
+    """On a hand-held Kinect sequence the directions must beat VO alone in rotation and in
+    aligned ATE; the latter needs the VO covariance's rotation-translation coupling (measured:
+    ATE 5.0 cm coupled, 5.7 cm uncorrelated, 5.7 cm VO alone)."""
+    default, motion, no_vp = tum_runs["default"], tum_runs["motion"], tum_runs["no_vp"]
+    assert default["rot_err_mean_deg"] < no_vp["rot_err_mean_deg"]
+    assert default["ate_aligned_rmse_m"] < 0.95 * no_vp["ate_aligned_rmse_m"]
+    assert default["ate_aligned_rmse_m"] < 0.95 * motion["ate_aligned_rmse_m"]
+    # VO alone is consistent on this sequence; the filter's NEES is reported, not hidden
+    assert no_vp["pose_nees_mean"] is not None and no_vp["pose_nees_mean"] < 12

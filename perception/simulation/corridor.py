@@ -88,6 +88,9 @@ class CorridorConfig:
         Lateral sway y = A sin(2 pi x / wavelength) (m) of the walking path.
     yaw_amplitude_deg, pitch_amplitude_deg, roll_amplitude_deg : float
         Small head motions (degrees); yaw follows the zigzag, pitch/roll bob at other rates.
+    mount_pitch_deg : float
+        A constant pitch of the camera (degrees, nose down for positive): a sensor mounted
+        slightly tilted, as on a real robot or helmet.
     depth_noise : float
         Axial depth noise coefficient: sigma = depth_noise * z^2 (m); 0 disables noise.
         Default 1.425e-3 (Kinect, Khoshelham & Elberink 2012).
@@ -148,6 +151,7 @@ class CorridorConfig:
     yaw_amplitude_deg: float = 3.0
     pitch_amplitude_deg: float = 1.0
     roll_amplitude_deg: float = 0.5
+    mount_pitch_deg: float = 0.0
     depth_noise: float = 1.425e-3
     min_depth: float = 0.8
     max_depth: float = 3.5
@@ -184,6 +188,8 @@ class CorridorConfig:
         if not 0 <= self.vignetting < 1 or self.exposure_jitter < 0 or self.exposure_time < 0:
             raise PerceptionError("vignetting must be in [0, 1), exposure_jitter and "
                                   "exposure_time >= 0")
+        if not abs(self.mount_pitch_deg) <= 45.0:  # also refuses NaN
+            raise PerceptionError("mount_pitch_deg must be within +-45 degrees")
         if self.blur_samples < 1 or len(self.disparity_tilt) != 2:
             raise PerceptionError("blur_samples must be >= 1 and disparity_tilt two numbers")
 
@@ -352,7 +358,8 @@ def corridor_trajectory(config: CorridorConfig = CorridorConfig(), time_offset: 
     phase = 2 * np.pi * (x - config.start_x) / config.zigzag_wavelength
     y = config.zigzag_amplitude * np.sin(phase)
     yaw = np.deg2rad(config.yaw_amplitude_deg) * np.cos(phase)
-    pitch = np.deg2rad(config.pitch_amplitude_deg) * np.sin(0.37 * phase + 0.5)
+    pitch = (np.deg2rad(config.pitch_amplitude_deg) * np.sin(0.37 * phase + 0.5)
+             + np.deg2rad(config.mount_pitch_deg))
     roll = np.deg2rad(config.roll_amplitude_deg) * np.sin(0.61 * phase + 1.3)
     poses = []
     base = gtsam.Rot3(R_WORLD_CAMERA_FORWARD)
