@@ -51,6 +51,19 @@ def check_input_file(path: str | os.PathLike, max_bytes: int = MAX_INPUT_BYTES) 
     return int(info.st_size)
 
 
+def library_path(path: str | os.PathLike, library: str) -> str:
+    """``path`` as the UTF-8 string that GTSAM's and Open3D's bindings need; a file name with
+    bytes that are not UTF-8 is an OctofactorError naming it (they cannot open it)."""
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        shown = text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        raise OctofactorError(f"{shown}: the file name is not UTF-8, which {library} needs "
+                              "(rename the file)") from None
+    return text
+
+
 def read_input_bytes(path: str | os.PathLike, max_bytes: int = MAX_INPUT_BYTES) -> bytes:
     """Return the content of the regular file ``path`` (see :func:`check_input_file`)."""
     size = check_input_file(path, max_bytes)

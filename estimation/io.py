@@ -25,7 +25,13 @@ import gtsam
 import numpy as np
 
 from .errors import EstimationError, FormatError, OctofactorError
-from .fileio import BinaryReader, atomic_write, check_input_file, read_input_bytes
+from .fileio import (
+    BinaryReader,
+    atomic_write,
+    check_input_file,
+    library_path,
+    read_input_bytes,
+)
 from .pose_graph import PoseGraph, Scan, as_covariance, direction_tangent_covariance, node_key
 
 PathLike = str | os.PathLike
@@ -237,7 +243,7 @@ def read_g2o(path: PathLike) -> PoseGraph:
     path = Path(path)
     _validate_g2o(path)
     try:
-        factor_graph, initial = gtsam.readG2o(str(path), True)
+        factor_graph, initial = gtsam.readG2o(library_path(path, "GTSAM"), True)
     except RuntimeError as exc:
         raise FormatError(path, f"GTSAM could not read it: {exc}") from None
     graph = PoseGraph()

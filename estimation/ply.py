@@ -175,12 +175,12 @@ def read_ply_quietly(path: str | os.PathLike, legacy: bool = False):
     without Open3D's warnings on stdout."""
     import open3d as o3d
 
-    from .fileio import captured_native_output, first_native_message
+    from .fileio import captured_native_output, first_native_message, library_path
 
+    name = library_path(path, "Open3D")
     with captured_native_output() as noise, \
             o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-        cloud = o3d.io.read_point_cloud(str(path)) if legacy else \
-            o3d.t.io.read_point_cloud(str(path))
+        cloud = o3d.io.read_point_cloud(name) if legacy else o3d.t.io.read_point_cloud(name)
     message = first_native_message(noise[0])
     if message:
         raise FormatError(path, f"Open3D could not read it ({message})")

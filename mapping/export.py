@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from estimation.errors import OctofactorError
-from estimation.fileio import atomic_path, atomic_write
+from estimation.fileio import atomic_path, atomic_write, library_path
 
 #: colours for class labels (tab20-like, uint8); label -1 (none) is grey
 PALETTE = np.array([
@@ -80,6 +80,7 @@ def write_ply(tree, path: str | os.PathLike, binary: bool = True) -> int:
     pcd.point.size = o3d.core.Tensor(occ.sizes.astype(np.float32).reshape(-1, 1))
     # Open3D writes by file name and picks the format from the suffix: a hidden temporary
     # .ply beside the destination (estimation.fileio), renamed over it on success
+    library_path(path, "Open3D")  # the temporary file's name contains it
     with atomic_path(path, suffix=".ply") as tmp:
         if not o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=not binary):
             raise OctofactorError(f"{path}: Open3D could not write the PLY file")

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from estimation.errors import FormatError
-from estimation.fileio import atomic_path, atomic_write, read_input_bytes
+from estimation.fileio import atomic_path, atomic_write, library_path, read_input_bytes
 from perception.errors import PerceptionError
 
 #: most classes a semantic cloud may have (labels in a PLY file are bounded by it before the
@@ -229,6 +229,7 @@ class SemanticCloud:
                 np.ascontiguousarray(self.probs[:, c:c + 1]))
         path = Path(path)
         # Open3D writes by file name and picks the format from the suffix
+        library_path(path, "Open3D")  # the temporary file's name contains it
         with atomic_path(path, suffix=".ply") as tmp_path:
             if not o3d.t.io.write_point_cloud(str(tmp_path), pcd, write_ascii=ascii):
                 raise PerceptionError(f"{path}: Open3D could not write the PLY")

@@ -23,6 +23,7 @@ REPO_ROOT = Path(__file__).resolve().parents[1]
 MEMORY_CAP = 4 << 30
 TIMEOUT_S = 60
 LONG = "n" * 300  # a file name over 255 bytes
+BAD_NAME = os.fsdecode(b"\xff")  # a file name that is not UTF-8 (GTSAM and Open3D need it)
 
 
 def _limit_memory():
@@ -95,6 +96,8 @@ def _write_files(d: Path) -> None:
     tiny = hf.IDENTITY_INFO.replace("1 ", "1e-320 ", 1)
     (d / "tinyinfo.g2o").write_text(hf.g2o_text(
         edge=f"EDGE_SE3:QUAT 1 2 1 0.1 0 0 0 0 1 {tiny}"))
+    (d / (BAD_NAME + ".g2o")).write_text(ok_g2o)
+    (d / (BAD_NAME + ".ply")).write_bytes(hf.ply_bytes(60))
     (d / "selfloop.graph").write_bytes(hf.scan_graph_bytes(self_loop=True))
     (d / "latin1.txt").write_bytes(b"# caf\xe9\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     (d / "clouds").mkdir()
@@ -185,6 +188,11 @@ CASES = [
      "file name too long"),
     ("graph-convert-long-output", "graph convert {d}/ok.g2o {d}/" + LONG + ".g2o",
      LONG + ".g2o"),
+    ("graph-non-utf8-name", "graph info {d}/" + BAD_NAME + ".g2o", "not UTF-8"),
+    ("register-non-utf8-name", "register {d}/" + BAD_NAME + ".ply {d}/ok.ply -o {d}/o27.json",
+     "not UTF-8"),
+    ("export-non-utf8-output", "octree export {d}/ok.bt -o {d}/" + BAD_NAME + ".ply",
+     "not UTF-8"),
     ("graph-convert-missing-folder", "graph convert {d}/ok.g2o {d}/nofolder/x.g2o", "nofolder"),
     # transform files that are not UTF-8
     ("register-init-latin1", "register {d}/ok.ply {d}/ok2.ply -o {d}/o17.json "
