@@ -197,7 +197,11 @@ def _validate_g2o(path: PathLike) -> None:
             if tag not in _G2O_TOKENS:
                 continue  # another g2o element (GTSAM skips it too)
             expected = _G2O_TOKENS[tag]
-            if expected is None:
+            if expected is None:  # FIX id...: the ids must be vertices defined before
+                for token in tokens[1:]:
+                    if _node_id(path, line_no, token) not in seen_vertex:
+                        raise FormatError(path, f"FIX refers to vertex {token} not defined "
+                                          "before it", line=line_no)
                 continue
             if tag == "VERTEX_SE3:QUAT":
                 node_id = _node_id(path, line_no, tokens[1]) if len(tokens) > 1 else None

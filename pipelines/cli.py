@@ -92,7 +92,7 @@ def run_command(func: Callable, args: argparse.Namespace) -> int:
     255 bytes, a full disk), text files that are not UTF-8, and running out of memory.
     Warnings (numpy RuntimeWarnings, Open3D notes) are held back while the command runs
     and printed after it only when it succeeds, so an error line is never preceded by them.
-    SIGTERM is turned into an exception so that temporary files are removed.
+    SIGTERM and SIGHUP are turned into an exception so that temporary files are removed.
     ``OCTOFACTOR_TRACEBACK=1`` re-raises instead (for debugging).
     """
     import os
@@ -104,6 +104,7 @@ def run_command(func: Callable, args: argparse.Namespace) -> int:
 
     with_traceback = os.environ.get("OCTOFACTOR_TRACEBACK") == "1"
     previous = signal.signal(signal.SIGTERM, on_sigterm)
+    previous_hup = signal.signal(signal.SIGHUP, on_sigterm)  # a closed terminal
     with warnings.catch_warnings(record=True) as held:
         try:
             status = int(func(args) or 0)
@@ -117,6 +118,7 @@ def run_command(func: Callable, args: argparse.Namespace) -> int:
             return 2
         finally:
             signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGHUP, previous_hup)
     import re
 
     for warning in held:
