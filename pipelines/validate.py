@@ -137,9 +137,20 @@ def map_options(args) -> None:
         raise OptionError("--max-range must be positive, or negative for no limit, got 0")
 
 
+#: the files ``vpslam -o OUT`` writes (pipelines.vpslam.write_outputs)
+VPSLAM_OUTPUTS = ("trajectory.txt", "graph.g2o", "graph.g2o.json", "graph.graph", "map.ot",
+                  "map.bt", "trajectory.png", "report.json")
+
+
 def vpslam_options(args) -> None:
     """Bounds of ``vpslam`` (--intrinsics is checked as it is parsed)."""
-    output_folder("-o", _first(args, "output", "out"))
+    import os
+
+    out = _first(args, "output", "out")
+    output_folder("-o", out)
+    if out is not None and os.path.isdir(out):  # the files a run writes there, before the run
+        for name in VPSLAM_OUTPUTS:
+            output_file("-o", os.path.join(out, name))
     number("--depth-scale", args.depth_scale, 0.0, 1e9, low_open=True, allow_none=True)
     number("--vp-distance", args.vp_distance, 0.0, 1e12, low_open=True)
     number("--gate", args.gate, 0.0, 1e12, low_open=True, allow_none=True)

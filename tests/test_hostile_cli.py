@@ -123,6 +123,8 @@ def _write_files(d: Path) -> None:
     (d / "afile").write_text("an existing file\n")
     (d / "target.json").write_text("{}\n")
     os.symlink("target.json", d / "link.json")
+    (d / "vout").mkdir()
+    os.symlink("../target.json", d / "vout" / "report.json")
     os.mkfifo(d / "fifo.g2o")
     hf.write_sequence(d / "seq")
     hf.write_sequence(d / "seq_broken", n_frames=4, broken=(0, 1, 2))
@@ -229,6 +231,7 @@ CASES = [
      "--intrinsics"),
     ("vpslam-depth-scale-inf", "vpslam {d}/seq -o {d}/v2 --depth-scale inf", "--depth-scale"),
     ("vpslam-output-existing-file", "vpslam {d}/seq -o {d}/afile", "afile"),
+    ("vpslam-output-file-symlink", "vpslam {d}/seq -o {d}/vout --quiet", "report.json"),
     ("vpslam-most-frames-unreadable", "vpslam {d}/seq_broken -o {d}/v3 --no-map --quiet",
      "seq_broken"),
     # other options
