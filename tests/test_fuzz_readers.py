@@ -145,9 +145,6 @@ def _read_trajectory(path):
     return read_trajectory(path)
 
 
-_CAMERA = None
-
-
 def _camera():
     from perception.rgbd import CameraIntrinsics
 
