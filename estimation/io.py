@@ -780,12 +780,12 @@ def _read_cloud(path: Path) -> np.ndarray:
             raise FormatError(path, f"expected 3 columns, found {points.shape[1]}")
         points = points.reshape(-1, 3)
     else:
-        from .ply import check_ply, read_ply_quietly  # Open3D: only for PLY/PCD clouds
+        from .ply import check_pcd, check_ply, read_ply_quietly  # Open3D: only PLY/PCD
 
         if path.suffix == ".ply":
             check_ply(path)
         else:
-            check_input_file(path)
+            check_pcd(path)
         points = np.asarray(read_ply_quietly(path, legacy=True).points)
         if len(points) == 0:
             raise FormatError(path, "no points read (unreadable or empty cloud)")

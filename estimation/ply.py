@@ -1,4 +1,4 @@
-"""PLY header checks run before Open3D reads a file.
+"""PLY (and PCD) header checks run before Open3D reads a file.
 
 Open3D (RPly) trusts the header: a vertex count larger than the file makes it allocate for
 the count and print noise, a count smaller than the file silently drops the rest. So every
@@ -185,3 +185,82 @@ def read_ply_quietly(path: str | os.PathLike, legacy: bool = False):
     if message:
         raise FormatError(path, f"Open3D could not read it ({message})")
     return cloud
+
+
+#: PCD header keys in the order the format requires them (DATA last)
+_PCD_KEYS = ("FIELDS", "SIZE", "TYPE", "COUNT", "WIDTH", "HEIGHT", "POINTS", "DATA")
+
+
+def check_pcd(path: str | os.PathLike) -> int:
+    """Return the point count of the PCD file ``path`` after checking it against the content.
+
+    The header's ``POINTS`` must equal ``WIDTH x HEIGHT`` and lie in 0..2^31-1; ``DATA ascii``
+    must be followed by that many non-blank lines, ``DATA binary`` by exactly that many rows of
+    the declared field sizes, ``DATA binary_compressed`` by a compressed block that fits the
+    file and expands to exactly that many rows. Open3D would allocate for the count first.
+    """
+    import struct
+
+    size = check_input_file(path)
+    with open(path, "rb") as handle:
+        head = handle.read(MAX_HEADER_BYTES)
+        fields: dict[str, list[str]] = {}
+        pos = 0
+        line_no = 0
+        while "DATA" not in fields:
+            end = head.find(b"\n", pos)
+            if end < 0:
+                raise FormatError(path, f"no DATA line in the first {MAX_HEADER_BYTES} bytes "
+                                  "(truncated or not a PCD file)")
+            line_no += 1
+            try:
+                tokens = head[pos:end].decode("ascii").split()
+            except UnicodeDecodeError:
+                raise FormatError(path, "header is not ASCII text", line=line_no) from None
+            pos = end + 1
+            if tokens and not tokens[0].startswith("#"):
+                fields[tokens[0].upper()] = tokens[1:]
+        missing = [key for key in _PCD_KEYS if key not in fields]
+        if missing:
+            raise FormatError(path, f"PCD header lacks {', '.join(missing)}")
+        try:
+            sizes = [int(v) for v in fields["SIZE"]]
+            counts = [int(v) for v in fields["COUNT"]]
+            width, height, points = (int(fields[k][0]) for k in ("WIDTH", "HEIGHT", "POINTS"))
+        except (ValueError, IndexError):
+            raise FormatError(path, "PCD header numbers (SIZE, COUNT, WIDTH, HEIGHT, POINTS) "
+                              "are not integers") from None
+        n_fields = len(fields["FIELDS"])
+        if not (len(sizes) == len(counts) == len(fields["TYPE"]) == n_fields) or \
+                any(s not in (1, 2, 4, 8) for s in sizes) or \
+                any(not 1 <= c <= 1024 for c in counts):
+            raise FormatError(path, "PCD header FIELDS, SIZE, TYPE and COUNT do not match")
+        if not 0 <= points <= MAX_COUNT or width < 0 or height < 0 or width * height != points:
+            raise FormatError(path, f"PCD header claims {points} points (WIDTH {width} x HEIGHT "
+                              f"{height}); counts must agree and lie in 0..{MAX_COUNT}")
+        row = sum(s * c for s, c in zip(sizes, counts))
+        kind = fields["DATA"][0].lower() if fields["DATA"] else ""
+        payload = size - pos
+        if kind == "ascii":
+            handle.seek(pos)
+            lines = sum(1 for line in handle if line.strip())
+            if lines != points:
+                raise FormatError(path, f"header claims {points} points, the file holds {lines} "
+                                  "data lines", offset=pos)
+        elif kind == "binary":
+            if payload != points * row:
+                raise FormatError(path, f"header claims {points} points ({points * row} bytes), "
+                                  f"{payload} bytes follow the header", offset=pos)
+        elif kind == "binary_compressed":
+            handle.seek(pos)
+            sizes_raw = handle.read(8)
+            if len(sizes_raw) < 8:
+                raise FormatError(path, "truncated compressed PCD block", offset=pos)
+            compressed, uncompressed = struct.unpack("<II", sizes_raw)
+            if compressed > payload - 8 or uncompressed != points * row:
+                raise FormatError(path, f"compressed block of {compressed} bytes expanding to "
+                                  f"{uncompressed} does not hold {points} points of {row} bytes "
+                                  f"in the {payload - 8} bytes that follow", offset=pos)
+        else:
+            raise FormatError(path, f"unknown PCD DATA kind {kind!r}")
+    return points

@@ -171,6 +171,22 @@ def _read_gray(path):
     return read_image(path)
 
 
+def _read_node_cloud(path):
+    from estimation.io import _read_cloud  # what load_node_clouds calls per node file
+
+    return _read_cloud(path)
+
+
+def _pcd_bytes(binary: bool) -> bytes:
+    points = np.random.default_rng(5).normal(size=(20, 3)).astype("<f4")
+    header = ("# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+              f"WIDTH 20\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 20\n"
+              f"DATA {'binary' if binary else 'ascii'}\n").encode()
+    if binary:
+        return header + points.tobytes()
+    return header + "".join(f"{x!r} {y!r} {z!r}\n" for x, y, z in points.tolist()).encode()
+
+
 def _kitti_text() -> str:
     return "1 0 0 0 0 1 0 0 0 0 1 0\n1 0 0 0.1 0 1 0 0 0 0 1 0\n"
 
@@ -187,6 +203,9 @@ READERS = {
     "ply_binary": (hf.ply_bytes, "x.ply", _read_ply, False),
     "ply_ascii": (lambda: hf.ply_bytes(ascii=True), "x.ply", _read_ply, True),
     "ply_probs": (lambda: hf.ply_bytes(probs=True), "x.ply", _read_ply, False),
+    "pcd_ascii": (lambda: _pcd_bytes(False), "1.pcd", _read_node_cloud, True),
+    "pcd_binary": (lambda: _pcd_bytes(True), "1.pcd", _read_node_cloud, False),
+    "ply_cloud": (hf.ply_bytes, "1.ply", _read_node_cloud, False),
     "transform": (lambda: hf.transform_text().encode(), "T.txt", _read_transform, True),
     "camera": (lambda: hf.camera_text().encode(), "camera.txt", _read_camera, True),
     "rgb_list": (lambda: b"# rgb\n1.0 rgb/1.png\n1.1 rgb/2.png\n", "rgb.txt", _read_list, True),

@@ -102,6 +102,10 @@ def _write_files(d: Path) -> None:
     (d / "latin1.txt").write_bytes(b"# caf\xe9\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     (d / "clouds").mkdir()
     (d / "clouds" / "0.ply").write_bytes(hf.ply_bytes(30, claimed=40))
+    (d / "pcd").mkdir()
+    (d / "pcd" / "0.pcd").write_text(
+        "VERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 2000000000\n"
+        "HEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 2000000000\nDATA ascii\n1 2 3\n4 5 6\n")
 
     (d / "ok.png").write_bytes(hf.png_bytes(64, 48))
     (d / "img1.png").write_bytes(hf.png_bytes(1, 1))
@@ -160,6 +164,7 @@ CASES = [
     ("register-truncated", "register {d}/truncated.ply {d}/ok.ply -o {d}/o8.json",
      "truncated.ply"),
     ("map-clouds-claims-more", "map {d}/ok.g2o --clouds {d}/clouds -o {d}/o9.bt", "0.ply"),
+    ("map-clouds-pcd-claims-2e9", "map {d}/ok.g2o --clouds {d}/pcd -o {d}/o28.bt", "0.pcd"),
     # octree files
     ("octree-info-dev-zero", "octree info /dev/zero", "/dev/zero"),
     ("octree-info-size0-bt", "octree info {d}/size0.bt", "size0.bt"),
