@@ -109,7 +109,12 @@ def _read_tree(path):
     from mapping import OcTree
 
     tree = OcTree.read(path)
-    tree.leaves()  # walk what was read
+    tree.leaves()  # walk what was read, and what export and info compute from it
+    voxels = tree.occupied_voxels()
+    assert np.all(np.isfinite(voxels.log_odds))
+    if hasattr(voxels, "probs"):
+        assert np.all(np.isfinite(voxels.probs))
+    tree.metric_bounds()
     return tree
 
 
