@@ -442,6 +442,9 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
         raise FormatError(sidecar, f"not valid JSON: {exc.msg}", line=exc.lineno) from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise FormatError(sidecar, f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise FormatError(sidecar, "not an octofactor g2o sidecar (JSON nested too deeply)") \
+            from None
     if not isinstance(document, dict) or document.get("format") != G2O_SIDECAR_FORMAT:
         raise FormatError(sidecar, f"not an octofactor g2o sidecar (no \"format\": "
                           f"\"{G2O_SIDECAR_FORMAT}\")")

@@ -98,6 +98,8 @@ def _write_files(d: Path) -> None:
         edge=f"EDGE_SE3:QUAT 1 2 1 0.1 0 0 0 0 1 {tiny}"))
     (d / (BAD_NAME + ".g2o")).write_text(ok_g2o)
     (d / (BAD_NAME + ".ply")).write_bytes(hf.ply_bytes(60))
+    (d / "deep.g2o").write_text(ok_g2o)
+    (d / "deep.g2o.json").write_text("[" * 200000 + "]" * 200000)
     (d / "selfloop.graph").write_bytes(hf.scan_graph_bytes(self_loop=True))
     (d / "latin1.txt").write_bytes(b"# caf\xe9\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     (d / "clouds").mkdir()
@@ -184,6 +186,7 @@ CASES = [
     ("graph-g2o-vertex-1e300", "graph optimize {d}/huge.g2o {d}/o14.g2o", "huge.g2o:3"),
     ("graph-g2o-id-2e56", "graph info {d}/id2e56.g2o", "id2e56.g2o:3"),
     ("graph-g2o-info-1e-320", "graph info {d}/tinyinfo.g2o", "tinyinfo.g2o:5"),
+    ("graph-sidecar-nested-json", "graph info {d}/deep.g2o", "deep.g2o.json"),
     ("graph-graph-self-loop", "graph info {d}/selfloop.graph", "selfloop.graph"),
     ("graph-fifo", "graph info {d}/fifo.g2o", "fifo.g2o"),
     ("graph-max-iterations", "graph optimize {d}/ok.g2o {d}/o15.g2o --max-iterations -1",
