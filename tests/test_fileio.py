@@ -181,6 +181,9 @@ def _api_cases():
         "intrinsics fx = 0": (lambda: CameraIntrinsics(0.0, 1.0, 1.0, 1.0, 10, 10), "fx"),
         "labels 2e9": (lambda: SemanticCloud.from_labels(np.zeros((2, 3)), [0, 2_000_000_000]),
                        "n_classes"),
+        "detector focal 1e300": (
+            lambda: detect_manhattan(np.zeros((48, 64), np.uint8),
+                                     np.diag([1e300, 1e300, 1.0])), "focal lengths"),
         "detector 1x1 image": (lambda: detect_manhattan(np.zeros((1, 1), np.uint8), np.eye(3)),
                                "1x1"),
     }
