@@ -205,12 +205,13 @@ def _nominal_K(shape: tuple[int, ...]) -> np.ndarray:
 
 def _check_K(K: np.ndarray) -> np.ndarray:
     K = np.asarray(K, dtype=np.float64)
+    if K.shape == (3, 3) and np.all(np.isfinite(K)) and \
+            max(abs(K[0, 0]), abs(K[1, 1])) > MAX_FOCAL_PX:
+        # beyond it back-projected directions underflow to (0, 0, 0)
+        raise PerceptionError(f"K: focal lengths must be at most {MAX_FOCAL_PX:g} pixels, got "
+                              f"fx={K[0, 0]:g}, fy={K[1, 1]:g}")
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
         raise PerceptionError(f"K must be a finite, invertible 3x3 camera matrix, got {K.tolist()}")
-    if not (0 < K[0, 0] <= MAX_FOCAL_PX and 0 < K[1, 1] <= MAX_FOCAL_PX):
-        # beyond it back-projected directions underflow to (0, 0, 0)
-        raise PerceptionError(f"K: focal lengths must lie in (0, {MAX_FOCAL_PX:g}] pixels, got "
-                              f"fx={K[0, 0]:g}, fy={K[1, 1]:g}")
     return K
 
 
