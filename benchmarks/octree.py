@@ -8,6 +8,12 @@ time. liboctomap (the Debian / PyPI octomap-python build) is single-threaded; ou
 the rays of a scan on numba's thread count (NUMBA_NUM_THREADS), everything else is one thread.
 
     .venv/bin/python benchmarks/octree.py [--quick] [--repeats N] [--only SECTION] [--res R]
+    .venv/bin/python benchmarks/octree.py --process [--repeats N] [--res R]
+
+``--process`` times whole processes as a user runs them: ``octofactor map G.graph -r R -m 10
+-o OUT.bt`` against liboctomap's ``graph2tree -i G.graph -res R -m 10 -o OUT.bt`` on the same
+.graph file (the corridor's 50 scans x 100k points, and a tiny 2 x 5k-point graph for the
+start-up), alternating, median wall time of the repeats; the two .bt files must be identical.
 
 The insertion rows alternate our runs with liboctomap's (so a change of machine load hits both
 sides alike) and take the median of ``--repeats`` runs of each.
@@ -107,8 +113,13 @@ def main() -> int:
                     help="run one section only")
     ap.add_argument("--res", type=float, default=None,
                     help="insertion rows at this resolution only (0.1 or 0.05)")
+    ap.add_argument("--process", action="store_true",
+                    help="time whole `octofactor map` processes against graph2tree on the "
+                    "same .graph file")
     args = ap.parse_args()
     repeats = args.repeats or (3 if args.quick else 5)
+    if args.process:
+        return process_rows(args, repeats)
     data = REPO.parent / "shared" / "data" / "octomap"
     if not data.is_dir():
         data = Path("/work/shared/data/octomap")
@@ -125,13 +136,16 @@ def main() -> int:
     w.leaves()
     w.to_bytes_bt()
 
-    from numba import get_num_threads
+    from numba import threading_layer
+
+    from mapping.octree import _num_threads as get_num_threads
 
     print(f"# mapping.OcTree vs liboctomap (octomap-python), medians of {repeats} repeats "
           "(liboctomap: 1 run for the per-call queries)")
     print("# throughputs by CPU time (summed over threads); ratios by CPU time and by wall time")
     print(f"# liboctomap (Debian/PyPI build) is single-threaded; our insertion marks rays on "
-          f"{get_num_threads()} thread(s) (numba's default, NUMBA_NUM_THREADS), all else 1 thread")
+          f"{get_num_threads()} thread(s) (numba's default, NUMBA_NUM_THREADS; threading layer "
+          f"{threading_layer()}), all else 1 thread")
     print(f"# load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     n_scans, n_pts = (10, 20_000) if args.quick else (50, 100_000)
     scans = corridor_scans(n_scans, n_pts)
@@ -140,6 +154,70 @@ def main() -> int:
         insertion_rows(scan, scan64, zero, scans, resolutions, repeats)
     if args.only in (None, "queries", "memory", "files"):
         other_rows(args, data, scan, zero, scans, repeats)
+    print(f"# load average at end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    return 0
+
+
+def _write_graph(path: Path, scans) -> int:
+    """The scans as an OctoMap .graph (sensor-frame float32 points, pose = the origin)."""
+    import gtsam
+
+    from estimation import PoseGraph, Scan
+    from estimation.io import write_scan_graph
+
+    pg = PoseGraph()
+    for i, (pts, origin) in enumerate(scans):
+        pg.add_node(i, gtsam.Pose3(gtsam.Rot3(), origin),
+                    scan=Scan((pts - origin.astype(np.float32)).astype(np.float32)))
+    write_scan_graph(path, pg)
+    return sum(len(p) for p, _ in scans)
+
+
+def process_rows(args, repeats: int) -> int:
+    """Whole-process `octofactor map` vs `graph2tree` on the same .graph (median wall times)."""
+    import shutil
+    import subprocess
+
+    graph2tree = shutil.which("graph2tree")
+    if graph2tree is None:
+        print("graph2tree not found (Debian package octomap-tools)", file=sys.stderr)
+        return 2
+    octofactor = [sys.executable, "-m", "pipelines"]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    print(f"# whole processes, median wall time of {repeats} alternating runs; "
+          f"octofactor = {' '.join(octofactor)} map (numba cache warm), graph2tree = "
+          f"{graph2tree}")
+    print(f"# load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        n_scans, n_pts = (10, 20_000) if args.quick else (50, 100_000)
+        cases = [("tiny 2 x 5k points", _write_graph(tmp / "tiny.graph", corridor_scans(2, 5000)),
+                  tmp / "tiny.graph"),
+                 (f"corridor {n_scans} x {n_pts // 1000}k points",
+                  _write_graph(tmp / "corridor.graph", corridor_scans(n_scans, n_pts)),
+                  tmp / "corridor.graph")]
+        resolutions = (0.1, 0.05) if args.res is None else (args.res,)
+        for label, n_points, graph in cases:
+            for res in resolutions:
+                ours_out, ref_out = tmp / "ours.bt", tmp / "ref.bt"
+                ours_cmd = octofactor + ["map", str(graph), "-r", str(res), "--max-range", "10",
+                                         "-q", "-o", str(ours_out)]
+                ref_cmd = [graph2tree, "-i", str(graph), "-res", str(res), "-m", "10",
+                           "-o", str(ref_out)]
+                subprocess.run(ours_cmd, check=True, env=env)  # warm the numba cache
+                times = {0: [], 1: []}
+                for _ in range(repeats):
+                    for side, cmd in ((0, ours_cmd), (1, ref_cmd)):
+                        start = time.perf_counter()
+                        subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL,
+                                       stderr=subprocess.DEVNULL)
+                        times[side].append(time.perf_counter() - start)
+                same = ours_out.read_bytes() == ref_out.read_bytes()
+                ours, ref = statistics.median(times[0]), statistics.median(times[1])
+                print(f"{label:<28} res {res:<5g} octofactor map {ours:8.3f} s  graph2tree "
+                      f"{ref:8.3f} s  ratio {ref / ours:6.2f}x  ({n_points / ours / 1e6:.2f} "
+                      f"Mpts/s; .bt identical: {same})")
     print(f"# load average at end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 

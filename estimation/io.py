@@ -710,15 +710,16 @@ def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
 
 
 # ---------------------------------------------------------------- dispatch
-FORMATS = {".graph": "octomap", ".g2o": "g2o", ".txt": "tum", ".tum": "tum"}
+FORMATS = {".graph": "octomap", ".g2o": "g2o", ".txt": "tum", ".tum": "tum",
+           ".kitti": "kitti"}
 
 
 def format_of(path: PathLike) -> str:
-    """The pose-graph format a file name implies: 'octomap', 'g2o' or 'tum'."""
+    """The pose-graph format a file name implies: 'octomap', 'g2o', 'tum' or 'kitti'."""
     suffix = Path(path).suffix.lower()
     if suffix not in FORMATS:
         raise OctofactorError(f"{path}: unknown pose-graph format {suffix!r} "
-                              "(use .graph, .g2o, or .txt/.tum for TUM)")
+                              "(use .graph, .g2o, .txt/.tum for TUM or .kitti for KITTI poses)")
     return FORMATS[suffix]
 
 
@@ -729,7 +730,44 @@ def read_pose_graph(path: PathLike) -> PoseGraph:
         check_input_file(path)
     except FileNotFoundError:
         raise OctofactorError(f"{path}: no such file") from None
-    return {"octomap": read_scan_graph, "g2o": read_g2o, "tum": read_tum}[kind](path)
+    if kind == "tum":
+        from .trajectory_io import detect_trajectory_format
+
+        # KITTI poses are often named .txt (the KITTI odometry benchmark's poses/00.txt)
+        kind = detect_trajectory_format(path)
+    return {"octomap": read_scan_graph, "g2o": read_g2o, "tum": read_tum,
+            "kitti": read_kitti}[kind](path)
+
+
+def read_kitti(path: PathLike) -> PoseGraph:
+    """Read a KITTI pose file (12 numbers a line) into a PoseGraph: nodes 0..N-1 in file
+    order, no factors, timestamps unknown (KITTI has none)."""
+    from .trajectory_io import read_kitti_arrays
+
+    poses = read_kitti_arrays(path)
+    if len(poses) == 0:
+        raise FormatError(path, "no poses found in KITTI pose file")
+    graph = PoseGraph()
+    for T in poses:
+        graph.add_node(len(graph.nodes), T)
+    graph.timestamps_missing = f"{path} is a KITTI pose file (KITTI has no timestamps)"
+    return graph
+
+
+def write_kitti_graph(path: PathLike, graph: PoseGraph) -> list[str]:
+    """Write the node poses in node-id order as a KITTI pose file; return what was dropped."""
+    from .trajectory_io import write_kitti
+
+    ids = graph.sorted_ids()
+    write_kitti(path, np.array([graph.nodes[i].pose.matrix() for i in ids]).reshape(-1, 4, 4))
+    dropped = []
+    if graph.timestamps_missing is None and len(ids):
+        dropped.append("timestamps")
+    if graph.factors:
+        dropped.append("factors")
+    if graph.num_points():
+        dropped.append("scans")
+    return dropped
 
 
 def write_pose_graph(path: PathLike, graph: PoseGraph) -> list[str]:
@@ -743,7 +781,8 @@ def write_pose_graph(path: PathLike, graph: PoseGraph) -> list[str]:
         if graph.num_points():
             dropped.append("scans")
         return dropped
-    return {"octomap": write_scan_graph, "g2o": write_g2o}[kind](path, graph)
+    return {"octomap": write_scan_graph, "g2o": write_g2o,
+            "kitti": write_kitti_graph}[kind](path, graph)
 
 
 def load_node_clouds(graph: PoseGraph, directory: PathLike) -> int:

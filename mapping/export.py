@@ -87,6 +87,21 @@ def write_ply(tree, path: str | os.PathLike, binary: bool = True) -> int:
     return len(occ)
 
 
+def _slice_figsize(centers_xy: np.ndarray, half: np.ndarray, width: float = 10.0,
+                   min_height: float = 2.0, max_height: float = 10.0) -> tuple[float, float]:
+    """Figure size (inches) whose axes have the slice's aspect ratio: a 30 m x 2 m corridor is
+    a wide, low figure rather than a thin strip on a 4:3 canvas. Very tall slices get a
+    narrower figure instead."""
+    if len(centers_xy) == 0:
+        return width, 0.75 * width
+    extent = (centers_xy + half[:, None]).max(axis=0) - (centers_xy - half[:, None]).min(axis=0)
+    aspect = float(extent[1] / max(extent[0], 1e-9))
+    height = width * aspect + 1.0  # + title and tick labels
+    if height > max_height:
+        return max(3.0, (max_height - 1.0) / aspect + 1.2), max_height
+    return width + 1.2, max(min_height, height)
+
+
 def save_height_slice(tree, path: str | os.PathLike, height: float | None = None,
                       dpi: int = 120) -> float:
     """Save a PNG of the map cut at ``height`` (m): occupied black, free light, unknown grey.
@@ -105,7 +120,7 @@ def save_height_slice(tree, path: str | os.PathLike, height: float | None = None
         height = float(np.median(z)) if z.size else 0.0
     half = lv.sizes / 2
     cut = (lv.centers[:, 2] - half <= height) & (lv.centers[:, 2] + half > height)
-    fig, ax = plt.subplots(figsize=(8, 6))
+    fig, ax = plt.subplots(figsize=_slice_figsize(lv.centers[cut, :2], half[cut]))
     ax.set_facecolor((0.6, 0.6, 0.6))
     from matplotlib.collections import PatchCollection
     from matplotlib.patches import Rectangle
@@ -125,10 +140,11 @@ def save_height_slice(tree, path: str | os.PathLike, height: float | None = None
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
-    ax.set_title(f"octree slice at z = {height:.2f} m (res {tree.resolution:g} m; "
-                 "black occupied, white free, grey unknown)")
+    ax.set_title(f"octree slice at z = {height:.2f} m (res {tree.resolution:g} m)\n"
+                 "black occupied, white free, grey unknown", fontsize=9)
     path = Path(path)
     with atomic_write(path, "wb") as fh:
-        fig.savefig(fh, format="png", dpi=dpi)
+        # tight: the axes keep the map's aspect, the canvas follows them (no blank bands)
+        fig.savefig(fh, format="png", dpi=dpi, bbox_inches="tight", pad_inches=0.1)
     plt.close(fig)
     return height

@@ -7,6 +7,7 @@ counts and files are bit-identical to liboctomap 1.9.7 (see docs/octree.md for t
 from __future__ import annotations
 
 import math
+import os
 import threading
 import warnings
 from dataclasses import dataclass
@@ -116,15 +117,31 @@ class InsertStats:
     n_out_of_bounds: int
 
 
-def _xyz(values, what: str, dtype=np.float32) -> np.ndarray:
-    """``values`` as a contiguous (N, 3) array; OctreeError naming ``what`` for other shapes."""
+def as_points3(points, what: str = "points", dtype=np.float32) -> np.ndarray:
+    """``points`` as a C-contiguous (N, 3) array; one point (3,) becomes (1, 3). Anything
+    else (an (N, 2) cloud, a flat list of 3N numbers) is an :class:`OctreeError` naming the
+    argument, instead of numpy's reshape error or a silently reinterpreted array."""
     try:
-        array = np.asarray(values, dtype=dtype)
+        arr = np.asarray(points, dtype=dtype)
     except (TypeError, ValueError):
-        raise OctreeError(f"{what} must be numbers of shape (N, 3) or (3,)") from None
-    if array.ndim > 2 or array.shape[-1:] != (3,):
-        raise OctreeError(f"{what} must have shape (N, 3) or (3,), got {array.shape}")
-    return np.ascontiguousarray(array.reshape(-1, 3))
+        raise OctreeError(f"{what} must be an (N, 3) array of numbers") from None
+    if arr.ndim == 1 and arr.shape[0] == 3:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise OctreeError(f"{what} must be an (N, 3) array, got shape {arr.shape}")
+    return np.ascontiguousarray(arr)
+
+
+def as_point3(point, what: str = "origin", dtype=np.float32) -> np.ndarray:
+    """``point`` as a (3,) array (also from (1, 3) or (3, 1)); anything else is an
+    :class:`OctreeError` naming the argument."""
+    try:
+        arr = np.asarray(point, dtype=dtype)
+    except (TypeError, ValueError):
+        raise OctreeError(f"{what} must be 3 numbers (x, y, z)") from None
+    if arr.size != 3 or arr.ndim > 2:
+        raise OctreeError(f"{what} must be 3 numbers (x, y, z), got shape {arr.shape}")
+    return arr.reshape(3)
 
 
 def _k():
@@ -154,6 +171,24 @@ _GRID_LOCK = threading.Lock()
 _MARK_PATH = 0
 
 
+def _num_threads() -> int:
+    """numba's thread count (NUMBA_NUM_THREADS), with a threading layer that loads quietly.
+
+    The rays are marked on our own threads (``_executor``), not by numba ``parallel=True``
+    kernels, so numba's threading layer only answers this count. Left to itself numba tries TBB
+    first and warns on every run when the system's TBB is too old (Debian's 2021.5); "omp" (the
+    GNU OpenMP runtime Open3D loads anyway), then numba's built-in "workqueue", load without a
+    warning, and the layer does not change the insertion speed (benchmarks/octree.py,
+    docs/octree.md). NUMBA_THREADING_LAYER(_PRIORITY) in the environment still wins.
+    """
+    import numba
+
+    if not any(k in os.environ for k in ("NUMBA_THREADING_LAYER",
+                                         "NUMBA_THREADING_LAYER_PRIORITY")):
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "workqueue", "tbb"]
+    return numba.get_num_threads()
+
+
 def _executor(n_workers: int):
     global _EXECUTOR
     if _EXECUTOR is None or _EXECUTOR._max_workers < n_workers:
@@ -169,7 +204,7 @@ def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: fl
     (non-finite, out of bounds, failed): the rays marked in shares on numba's threads
     (with ``discretize``, one ray per endpoint voxel centre)."""
     k = _k()
-    from numba import get_num_threads
+    get_num_threads = _num_threads
 
     skipped = (0, 0)
     if discretize:
@@ -314,13 +349,13 @@ class OcTree:
     # ------------------------------------------------------------------ keys
     def coord_to_key(self, points) -> np.ndarray:
         """Keys (N,3) uint16 of points, ``floor(c/res) + 32768`` (coordToKey, no bounds check)."""
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        pts = as_points3(points, dtype=np.float64)
         k = np.floor((1.0 / self.resolution) * pts.astype(np.float32).astype(np.float64))
         return (k.astype(np.int64) + KEY_OFFSET).astype(np.uint16)
 
     def coord_to_key_checked(self, points) -> tuple[np.ndarray, np.ndarray]:
         """(keys (N,3) uint16, valid (N,) bool) like coordToKeyChecked (float32 coordinates)."""
-        pts = _xyz(points, "points")
+        pts = as_points3(points)
         k = _k().coords_to_keys(pts, 1.0 / self.resolution)
         valid = (k >= 0).all(axis=1)
         return np.where(k >= 0, k, 0).astype(np.uint16), valid
@@ -349,8 +384,8 @@ class OcTree:
         Exact computeRayKeys (float32 direction and length). Raises OctreeError when either
         point is outside the map (liboctomap returns false).
         """
-        o = np.asarray(origin, dtype=np.float32).reshape(3)
-        e = np.asarray(end, dtype=np.float32).reshape(3)
+        o = as_point3(origin, "origin")
+        e = as_point3(end, "end")
         out = np.empty((4096, 3), np.int64)
         k = _k()
         n = k.ray_keys(o[0], o[1], o[2], e[0], e[1], e[2], self.resolution, out)
@@ -407,11 +442,8 @@ class OcTree:
         marked on numba's thread count (``NUMBA_NUM_THREADS``); the result does not depend on it.
         """
         self._check_updatable()
-        pts = _xyz(points, "points")
-        o = _xyz(origin, "origin")
-        if o.shape[0] != 1:
-            raise OctreeError(f"origin must be one point (3,), got {o.shape[0]} points")
-        o = o.reshape(3)
+        pts = as_points3(points, "points")
+        o = as_point3(origin, "origin")
         if not np.isfinite(o).all():
             raise OctreeError(f"sensor origin must be finite, got {o.tolist()}")
         codes, upd, n_occ, n_nonfinite, n_oob, _n_failed = _scan_updates(
@@ -430,8 +462,8 @@ class OcTree:
         Each ray key gets a miss, the end key a hit (no deduplication against other rays).
         """
         self._check_updatable()
-        o = np.asarray(origin, dtype=np.float32).reshape(3)
-        e = np.asarray(end, dtype=np.float32).reshape(3)
+        o = as_point3(origin, "origin")
+        e = as_point3(end, "end")
         d = (e - o).astype(np.float32)
         length = math.sqrt(float(np.float32(np.float32(d[0] * d[0] + d[1] * d[1]) + d[2] * d[2])))
         hit = True
@@ -453,7 +485,7 @@ class OcTree:
         """
         self._check_updatable()
         if keys:
-            kk = np.asarray(points, dtype=np.int64).reshape(-1, 3)
+            kk = as_points3(points, "keys", dtype=np.int64)
             valid = ((kk >= 0) & (kk < 65536)).all(axis=1)
         else:
             kk, valid = self.coord_to_key_checked(points)
@@ -582,7 +614,7 @@ class OcTree:
         Points outside the map are reported unknown.
         """
         if keys:
-            kk = _xyz(points, "keys", np.int64)
+            kk = as_points3(points, "keys", dtype=np.int64)
             valid = ((kk >= 0) & (kk < 65536)).all(axis=1)
             kk = np.where(valid[:, None], kk, 0).astype(np.uint16)
         else:
@@ -602,8 +634,8 @@ class OcTree:
     def cast_ray(self, origins, directions, ignore_unknown: bool = False,
                  max_range: float = -1.0) -> RayResult:
         """castRay for one or N rays: first occupied cell along each ray (exact semantics)."""
-        o = _xyz(origins, "origins")
-        d = _xyz(directions, "directions")
+        o = as_points3(origins, "origins")
+        d = as_points3(directions, "directions")
         if d.shape[0] == 1 and o.shape[0] > 1:
             d = np.ascontiguousarray(np.broadcast_to(d, o.shape))
         if o.shape[0] == 1 and d.shape[0] > 1:

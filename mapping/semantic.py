@@ -17,7 +17,7 @@ import numpy as np
 
 from estimation.errors import FormatError
 
-from .octree import InsertStats, OcTree, OctreeError
+from .octree import InsertStats, OcTree, OctreeError, as_point3, as_points3
 
 SEMANTIC_ID = "SemanticOcTree"
 _TRAILER_MAGIC = b"SEMV"
@@ -87,13 +87,13 @@ class SemanticOcTree(OcTree):
         Only endpoints that become occupied hits (finite, in the map, within ``max_range``)
         contribute class evidence.
         """
-        pts = np.ascontiguousarray(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        pts = as_points3(points, "points")
         stats = super().insert_point_cloud(pts, origin, max_range=max_range,
                                            discretize=discretize, lazy_eval=lazy_eval)
         p = self._point_probs(pts.shape[0], probs, labels)
         if p is None:
             return stats
-        o = np.asarray(origin, dtype=np.float32).reshape(3)
+        o = as_point3(origin, "origin")
         with np.errstate(invalid="ignore", over="ignore"):
             d = (pts - o).astype(np.float32)
             sq = (d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]).astype(np.float32) + d[:, 2] * d[:, 2]

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
+from estimation.config import coerce_fields
 from perception.errors import PerceptionError
 from perception.rgbd import CameraIntrinsics, RgbdFrame
 
@@ -82,11 +83,12 @@ COV_CALIBRATION: dict[str, dict[int, tuple[float, tuple]]] = {
 }
 
 
-# The default covariance model ("motion"): per-axis standard deviations that grow with the
+# The "motion" covariance model: per-axis standard deviations that grow with the
 # increment, sigma_rot = a + b |omega|, sigma_trans = c + d |t| (|omega| in rad, |t| in m),
 # isotropic per block. Fitted by maximum likelihood on the real development sequences
 # (../shared/data/rgbd: ICL-NUIM office kt0 and TUM fr1/rpy, 247 pairs of this module's
-# default odometry against ground truth; benchmarks/vo_covariance.py --gaps 1 --fit). A scaled inverse information matrix was part of the
+# default odometry against ground truth; benchmarks/vo_covariance.py --gaps 1 --fit gives
+# (8.27e-4, 0.0988, 4.97e-4, 0.349)). A scaled inverse information matrix was part of the
 # fitted family; its maximum-likelihood weight was zero. Per-sequence NEES of the fit: 2.3 on
 # ICL-NUIM, 8.5 on TUM (mean, 6 expected): errors grow with motion (blur, rolling shutter,
 # colour-depth asynchrony), which the point-to-point information matrix does not see.
@@ -234,6 +236,7 @@ class OdometryConfig:
     coupling: float = COUPLING
 
     def __post_init__(self):
+        coerce_fields(self)  # lists (JSON, TOML) -> tuples: equal to the original config
         if self.cov_model not in ("coupled", "motion", "information"):
             raise PerceptionError(f"cov_model must be 'coupled', 'motion' or 'information', "
                                   f"got {self.cov_model!r}")

@@ -299,6 +299,51 @@ def listed_image_size(seq_dir: str | os.PathLike) -> tuple[int, int]:
     return size
 
 
+def check_distortion(distortion) -> tuple[float, ...] | None:
+    """The lens distortion as a tuple (OpenCV order k1, k2, p1, p2[, k3[, k4, k5, k6]]), None
+    for none; PerceptionError when it is not 4, 5 or 8 finite numbers of plausible size."""
+    if distortion is None:
+        return None
+    values = tuple(float(v) for v in distortion)
+    if len(values) not in (4, 5, 8) or not all(np.isfinite(v) and abs(v) < 100 for v in values):
+        raise PerceptionError(f"distortion must be 4, 5 or 8 finite coefficients (OpenCV: "
+                              f"k1,k2,p1,p2[,k3[,k4,k5,k6]]), got {distortion!r}")
+    return values if any(values) else None
+
+
+class Undistorter:
+    """Removes the lens distortion of RGB-D frames, keeping the pinhole camera matrix.
+
+    Colour is resampled bilinearly; depth with the nearest neighbour, so that no depth is
+    invented across an edge (an invalid 0 stays invalid). The depth image must be registered
+    to the colour camera (TUM, OpenNI), so the colour camera's distortion applies to both.
+    """
+
+    def __init__(self, intr: CameraIntrinsics, distortion):
+        import cv2
+
+        self.distortion = check_distortion(distortion)
+        self._maps = None
+        if self.distortion is not None:
+            self._maps = cv2.initUndistortRectifyMap(
+                intr.K, np.array(self.distortion), None, intr.K, (intr.width, intr.height),
+                cv2.CV_32FC1)
+
+    def __call__(self, frame: RgbdFrame) -> RgbdFrame:
+        if self._maps is None:
+            return frame
+        import cv2
+
+        map_x, map_y = self._maps
+        if frame.rgb.shape[:2] != map_x.shape or frame.depth_m.shape != map_x.shape:
+            return frame  # the size check of the caller names the file
+        rgb = cv2.remap(frame.rgb, map_x, map_y, cv2.INTER_LINEAR,
+                        borderMode=cv2.BORDER_CONSTANT)
+        depth = cv2.remap(frame.depth_m, map_x, map_y, cv2.INTER_NEAREST,
+                          borderMode=cv2.BORDER_CONSTANT)
+        return replace(frame, rgb=rgb, depth_m=depth)
+
+
 class TumRgbdSequence:
     """The associated frames of a TUM-layout RGB-D folder, read lazily.
 
@@ -312,6 +357,10 @@ class TumRgbdSequence:
         Largest |t_rgb - t_depth| (s) for a colour/depth pair (nearest timestamps).
     gt_max_gap : float
         Ground-truth samples further than this (s) from the frame time give no pose (None).
+    distortion : sequence of float, optional
+        The colour camera's lens distortion (OpenCV order k1, k2, p1, p2[, k3]; TUM publishes
+        them per sensor): frames are undistorted on reading (:class:`Undistorter`) and keep
+        ``intrinsics`` as their pinhole camera.
 
     Attributes
     ----------
@@ -321,7 +370,7 @@ class TumRgbdSequence:
     """
 
     def __init__(self, seq_dir: str | os.PathLike, intrinsics: CameraIntrinsics | None = None,
-                 max_dt: float = 0.02, gt_max_gap: float = 0.1):
+                 max_dt: float = 0.02, gt_max_gap: float = 0.1, distortion=None):
         self.seq_dir = Path(seq_dir)
         if not self.seq_dir.is_dir():
             raise FormatError(self.seq_dir, "sequence folder not found")
@@ -340,6 +389,8 @@ class TumRgbdSequence:
             gt_stamps, gt_poses = np.zeros(0), np.zeros((0, 7))
         self._gt = (gt_stamps, gt_poses)
         self.gt_max_gap = gt_max_gap
+        self.distortion = check_distortion(distortion)
+        self._undistort = None  # built on the first frame (needs OpenCV)
 
     def __len__(self) -> int:
         return len(self._rgb_paths)
@@ -371,12 +422,17 @@ class TumRgbdSequence:
         index %= len(self)
         rgb_path, depth_path = self._rgb_paths[index], self._depth_paths[index]
         stamp = float(self.timestamps[index])
-        return RgbdFrame(
+        frame = RgbdFrame(
             index=index, timestamp=stamp,
             rgb=read_rgb(rgb_path, self.intrinsics),
             depth_m=read_depth(depth_path, self.intrinsics),
             T_world_camera_gt=interpolate_poses(*self._gt, stamp, self.gt_max_gap),
             rgb_path=rgb_path, depth_path=depth_path)
+        if self.distortion is None:
+            return frame
+        if self._undistort is None:
+            self._undistort = Undistorter(self.intrinsics, self.distortion)
+        return self._undistort(frame)
 
 
 def read_rgb(path: str | os.PathLike, intr: CameraIntrinsics | None = None) -> np.ndarray:

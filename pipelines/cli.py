@@ -28,7 +28,7 @@ COMMAND_MODULES = (
 
 # Commands that group sub-subcommands: `octofactor graph info`, `octofactor simulate room`, ...
 GROUPS = {
-    "graph": "pose graphs: info, convert, optimize (.graph / .g2o / TUM)",
+    "graph": "pose graphs: info, convert, optimize (.graph / .g2o / TUM / KITTI)",
     "octree": "octree files: info, convert, export (.bt / .ot)",
     "simulate": "synthetic data sets: corridor (RGB-D sequence), room (semantic clouds)",
 }
@@ -54,12 +54,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     def add_command(name: str, help: str, group: str | None = None) -> argparse.ArgumentParser:
         if group is None:
-            return top.add_parser(name, help=help, description=help)
-        if group not in groups:
-            group_parser = top.add_parser(group, help=GROUPS[group], description=GROUPS[group])
-            groups[group] = group_parser.add_subparsers(dest="subcommand", metavar="SUBCOMMAND")
-            group_parser.set_defaults(func=lambda args, p=group_parser: _usage(p))
-        return groups[group].add_parser(name, help=help, description=help)
+            command = top.add_parser(name, help=help, description=help)
+        else:
+            if group not in groups:
+                group_parser = top.add_parser(group, help=GROUPS[group],
+                                              description=GROUPS[group])
+                groups[group] = group_parser.add_subparsers(dest="subcommand",
+                                                            metavar="SUBCOMMAND")
+                group_parser.set_defaults(func=lambda args, p=group_parser: _usage(p))
+            command = groups[group].add_parser(name, help=help, description=help)
+        # one convention for every command (pipelines/cli_common.py)
+        command.add_argument("-q", "--quiet", action="store_true",
+                             help="no progress bars, nothing on stdout (errors and warnings "
+                             "still on stderr)")
+        return command
 
     for module_name in COMMAND_MODULES:
         try:
@@ -78,10 +86,50 @@ def _usage(parser: argparse.ArgumentParser) -> int:
     return 2
 
 
+def _one_line_warnings(python_showwarning):
+    """A ``warnings.showwarning`` that prints octofactor's own warnings (plug-ins skipped, ...)
+    as one clean line on stderr, and others as Python does (a normal run has none)."""
+
+    def show(message, category, filename, lineno, file=None, line=None) -> None:
+        from estimation.plugins import PluginWarning
+
+        if issubclass(category, PluginWarning) or category.__module__.split(".")[0] in (
+                "estimation", "perception", "mapping", "pipelines"):
+            print(f"octofactor: warning: {message}", file=file or sys.stderr)
+        else:
+            python_showwarning(message, category, filename, lineno, file, line)
+
+    return show
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    return run_command(args.func, args)
+    return run_command(_call, args)
+
+
+def _call(args) -> int:
+    """Run ``args.func`` with the global switches applied (--deterministic, --quiet)."""
+    import os
+
+    tqdm_disable = os.environ.get("TQDM_DISABLE")
+    try:
+        if getattr(args, "deterministic", False):
+            from pipelines.runtime import set_deterministic
+
+            set_deterministic(getattr(args, "seed", None))
+        if getattr(args, "quiet", False) and not getattr(args, "dump_config", False):
+            import contextlib
+
+            os.environ["TQDM_DISABLE"] = "1"  # every progress bar, in any module
+            with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
+                return int(args.func(args) or 0)
+        return int(args.func(args) or 0)
+    finally:
+        if tqdm_disable is None:
+            os.environ.pop("TQDM_DISABLE", None)
+        else:
+            os.environ["TQDM_DISABLE"] = tqdm_disable
 
 
 def run_command(func: Callable, args: argparse.Namespace) -> int:
@@ -90,27 +138,36 @@ def run_command(func: Callable, args: argparse.Namespace) -> int:
     This is the one place that turns errors into messages: the project's errors
     (OctofactorError), every OSError (missing, unreadable or unwritable files, names over
     255 bytes, a full disk), text files that are not UTF-8, and running out of memory.
-    Warnings (numpy RuntimeWarnings, Open3D notes) are held back while the command runs
-    and printed after it only when it succeeds, so an error line is never preceded by them.
-    SIGTERM and SIGHUP are turned into an exception so that temporary files are removed.
-    ``OCTOFACTOR_TRACEBACK=1`` re-raises instead (for debugging).
+    octofactor's own warnings (plug-ins skipped, ...) are one line each as they happen; other
+    warnings (NumPy RuntimeWarnings, ...) are held back and printed, one line each, only when
+    the command succeeds, so an error line is never preceded by them. SIGTERM and SIGHUP are
+    turned into an exception so that temporary files are removed. ``OCTOFACTOR_TRACEBACK=1``
+    re-raises instead (for debugging).
     """
     import os
+    import re
     import signal
     import warnings
 
     def on_sigterm(signum, frame):
         raise SystemExit(128 + signum)
 
+    held: list[str] = []
+    own = _one_line_warnings(lambda message, *rest: held.append(str(message)))
     with_traceback = os.environ.get("OCTOFACTOR_TRACEBACK") == "1"
     previous = signal.signal(signal.SIGTERM, on_sigterm)
     previous_hup = signal.signal(signal.SIGHUP, on_sigterm)  # a closed terminal
-    with warnings.catch_warnings(record=True) as held:
+    with warnings.catch_warnings():  # restores the warning display afterwards (tests)
+        warnings.showwarning = own
         try:
             status = int(func(args) or 0)
         except KeyboardInterrupt:
             print("octofactor: interrupted", file=sys.stderr)
             return 130
+        except BrokenPipeError:  # `octofactor plugins | head`: the reader left, not an error
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            return 0
         except Exception as exc:  # noqa: BLE001 - the one place errors become a line
             if with_traceback:
                 raise
@@ -119,10 +176,8 @@ def run_command(func: Callable, args: argparse.Namespace) -> int:
         finally:
             signal.signal(signal.SIGTERM, previous)
             signal.signal(signal.SIGHUP, previous_hup)
-    import re
-
-    for warning in held:
-        text = re.sub(r"\x1b\[[0-9;]*m", "", " ".join(str(warning.message).split()))
+    for message in held:
+        text = re.sub(r"\x1b\[[0-9;]*m", "", " ".join(message.split()))
         print(f"octofactor: warning: {text}", file=sys.stderr)
     return status
 

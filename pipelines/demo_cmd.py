@@ -1,10 +1,13 @@
 """`octofactor demo`: the whole mission on built-in synthetic data."""
 from __future__ import annotations
 
+from pipelines.cli_common import add_output
+
 
 def register(add_command) -> None:
     parser = add_command("demo", "run the demo on built-in synthetic data; results in OUT/")
-    parser.add_argument("-o", "--out", default="out", help="output folder (default: out)")
+    add_output(parser, "output folder (default: out)", required=False, default="out",
+               metavar="OUT_DIR", old_option="--out")
     parser.add_argument("--quick", action="store_true", help="smaller data, for tests")
     parser.set_defaults(func=run)
 
@@ -14,6 +17,6 @@ def run(args) -> int:
 
     from pipelines.demo import run_demo
 
-    run_demo(Path(args.out), quick=args.quick)
-    print(f"results in {args.out}/")
+    run_demo(Path(args.output), quick=args.quick)
+    print(f"results in {args.output}/")
     return 0

@@ -16,7 +16,6 @@ def register(add_command) -> None:
                         help="RPE frame distance, in matched poses (default: 1)")
     parser.add_argument("-o", "--output", metavar="FILE.json",
                         help="write all metrics as JSON")
-    parser.add_argument("--quiet", action="store_true", help="print no table")
     parser.set_defaults(func=run)
 
 

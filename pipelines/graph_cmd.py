@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import sys
 
+from pipelines.cli_common import add_output, output_of
+
 
 def register(add_command) -> None:
     info = add_command("info", "summarise a pose-graph file (.graph, .g2o, TUM .txt)",
@@ -10,17 +12,20 @@ def register(add_command) -> None:
     info.add_argument("file")
     info.set_defaults(func=run_info)
 
-    convert = add_command("convert", "convert between .graph, .g2o and TUM .txt", group="graph")
-    convert.add_argument("input")
-    convert.add_argument("output")
+    convert = add_command("convert", "convert between .graph, .g2o, TUM .txt and KITTI .kitti",
+                          group="graph")
+    convert.add_argument("input", metavar="SOURCE")
+    add_output(convert, "the converted file (.graph, .g2o, TUM .txt, KITTI .kitti)",
+               old_positional=True)
     convert.add_argument("--clouds", metavar="DIR",
                          help="attach per-node clouds DIR/<id>.xyz|.ply|.pcd (sensor frame)")
     convert.set_defaults(func=run_convert)
 
     optimize = add_command("optimize", "optimise a pose graph (Levenberg-Marquardt or iSAM2)",
                            group="graph")
-    optimize.add_argument("input")
-    optimize.add_argument("output")
+    optimize.add_argument("input", metavar="SOURCE")
+    add_output(optimize, "the optimised graph (.graph, .g2o, TUM .txt, KITTI .kitti)",
+               old_positional=True)
     optimize.add_argument("--method", choices=("lm", "isam2"), default="lm")
     optimize.add_argument("--max-iterations", type=int, default=100)
     optimize.set_defaults(func=run_optimize)
@@ -54,24 +59,25 @@ def _report_dropped(dropped: list[str], output: str) -> None:
 
 def run_convert(args) -> int:
     from estimation.io import load_node_clouds, read_pose_graph, write_pose_graph
-    from pipelines.validate import output_file
+    from pipelines.validate import output_file, output_path
 
-    output_file("OUTPUT", args.output)
+    output_file("-o", output_path(args))
     graph = read_pose_graph(args.input)
     if args.clouds:
         attached = load_node_clouds(graph, args.clouds)
         print(f"attached clouds to {attached} of {len(graph.nodes)} nodes", file=sys.stderr)
-    _report_dropped(write_pose_graph(args.output, graph), args.output)
+    output = output_of(args)
+    _report_dropped(write_pose_graph(output, graph), output)
     return 0
 
 
 def run_optimize(args) -> int:
     from estimation.io import read_pose_graph, write_pose_graph
     from estimation.pose_graph import GAUGE_SIGMA
-    from pipelines.validate import integer, output_file
+    from pipelines.validate import integer, output_file, output_path
 
     integer("--max-iterations", args.max_iterations, 1, 100000)
-    output_file("OUTPUT", args.output)
+    output_file("-o", output_path(args))
 
     graph = read_pose_graph(args.input)
     if not graph.factors:
@@ -85,5 +91,6 @@ def run_optimize(args) -> int:
     print(f"initial error: {result.initial_error:.10g}")
     print(f"final error:   {result.final_error:.10g} "
           f"({result.iterations} iterations, {result.method})")
-    _report_dropped(write_pose_graph(args.output, graph), args.output)
+    output = output_of(args)
+    _report_dropped(write_pose_graph(output, graph), output)
     return 0

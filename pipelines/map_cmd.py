@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from pipelines.cli_common import add_output, output_of
+
 
 def register(add_command) -> None:
     p = add_command("map", "fuse the scans of a .graph file into an octree (.bt or .ot), "
@@ -30,8 +32,8 @@ def register(add_command) -> None:
     p.set_defaults(func=run_info)
 
     p = add_command("convert", "convert between .bt and .ot (by extension)", group="octree")
-    p.add_argument("input")
-    p.add_argument("output")
+    p.add_argument("input", metavar="SOURCE")
+    add_output(p, "OUT.bt or OUT.ot", old_positional=True)
     p.set_defaults(func=run_convert)
 
     p = add_command("export", "export occupied voxels to .ply, or a height slice to .png",
@@ -98,10 +100,11 @@ def run_info(args: argparse.Namespace) -> int:
 def run_convert(args: argparse.Namespace) -> int:
     from mapping import OcTree
 
-    _check_ext(args.output, (".bt", ".ot"))
+    output = output_of(args)
+    _check_ext(output, (".bt", ".ot"))
     tree = OcTree.read(args.input)
-    tree.write(args.output)
-    print(f"{args.output}: {tree.size()} nodes")
+    tree.write(output)
+    print(f"{output}: {tree.size()} nodes")
     return 0
 
 

@@ -1,4 +1,5 @@
-"""`octofactor register SRC TGT` and `octofactor calibrate ROBOT_MAP HEADSET_CLOUD`.
+"""`octofactor register SOURCE TARGET` and `octofactor calibrate HEADSET MAP` (SOURCE TARGET
+order everywhere: the headset cloud is registered to the map).
 
 Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs work for
 ``--method gicp``), run GICP-SE(3) or Semantic-ICP and write RESULT.json with T
@@ -18,19 +19,26 @@ from __future__ import annotations
 import json
 import sys
 
+from pipelines.cli_common import add_config, add_output
+
 
 def register(add_command) -> None:
     parser = add_command("register", "register two point-cloud PLY files (GICP-SE(3) or "
                                      "Semantic-ICP) and write RESULT.json")
-    parser.add_argument("source", metavar="SRC", help="source cloud (PLY)")
-    parser.add_argument("target", metavar="TGT", help="target cloud (PLY)")
+    parser.add_argument("source", metavar="SOURCE", help="source cloud (PLY)")
+    parser.add_argument("target", metavar="TARGET", help="target cloud (PLY)")
     _common(parser, default_method="gicp")
     parser.set_defaults(func=run_register)
 
     parser = add_command("calibrate", "calibrate a headset against the robot's semantic map "
                                       "(Semantic-ICP of the headset cloud to the map)")
-    parser.add_argument("robot_map", metavar="ROBOT_MAP", help="robot semantic map (PLY)")
-    parser.add_argument("headset", metavar="HEADSET_CLOUD", help="headset semantic cloud (PLY)")
+    parser.add_argument("headset_pos", metavar="HEADSET", nargs="?",
+                        help="headset semantic cloud (PLY; the source)")
+    parser.add_argument("map_pos", metavar="MAP", nargs="?",
+                        help="robot semantic map (PLY; the target)")
+    parser.add_argument("--headset", help="the headset cloud, by name (instead of HEADSET)")
+    parser.add_argument("--map", dest="robot_map", metavar="MAP",
+                        help="the robot's map, by name (instead of MAP)")
     parser.add_argument("--left-handed", action="store_true",
                         help="the headset cloud is in a left-handed frame (HoloLens/Unity)")
     parser.add_argument("--flip-axis", choices=("x", "y", "z"), default="z",
@@ -45,25 +53,27 @@ def register(add_command) -> None:
 def _common(parser, default_method: str) -> None:
     parser.add_argument("--method", choices=("gicp", "semantic"), default=default_method,
                         help=f"registration method ({default_method})")
+    add_config(parser, "RegistrationConfig")
     parser.add_argument("--init", metavar="T.txt", help="initial T_target_source (4x4 text)")
     parser.add_argument("--gt", metavar="T.txt", help="ground-truth T_target_source (4x4 text)")
-    parser.add_argument("--max-corr", type=float, default=0.2, metavar="D",
+    parser.add_argument("--max-corr", type=float, default=None, metavar="D",
                         help="correspondence distance d_max at convergence, m (0.2)")
     parser.add_argument("--initial-corr", type=float, default=None, metavar="D",
                         help="d_max of the first iteration, annealed to --max-corr (none)")
-    parser.add_argument("--alpha", type=float, default=2.0, help="Cauchy kernel alpha (2.0)")
-    parser.add_argument("--semantic-weight", choices=("inside", "outside"), default="outside",
+    parser.add_argument("--alpha", type=float, default=None, help="Cauchy kernel alpha (2.0)")
+    parser.add_argument("--semantic-weight", choices=("inside", "outside"), default=None,
                         help="omega inside the Cauchy kernel (eq. (7)) or outside (Parkison)")
-    parser.add_argument("--surface-radius", default="auto", metavar="auto|none|R",
+    parser.add_argument("--surface-radius", default=None, metavar="auto|none|R",
                         help="measure residuals between local surface means within R m; "
                         "auto: sqrt(3) x the voxel pitch when a cloud is a voxel-centre map "
                         "(default), none: between the samples")
-    parser.add_argument("--max-iterations", type=int, default=60,
+    parser.add_argument("--max-iterations", type=int, default=None,
                         help="outer iterations at the final correspondence distance (60)")
     parser.add_argument("--estimator", metavar="NAME",
                         help="a registration estimator from `octofactor plugins` (overrides "
                         "--method; receives the clouds, --init and the class probabilities)")
-    parser.add_argument("-o", "--output", metavar="RESULT.json", required=True)
+    add_output(parser, "RESULT.json: T, covariance, convergence, errors with --gt",
+               metavar="RESULT.json", required=False)
 
 
 def _load(path: str, method: str):
@@ -93,16 +103,12 @@ def _register(args, source, target, flip=None) -> dict:
 
     from estimation.covariance import nees
     from estimation.errors import OctofactorError
-    from estimation.registration import Registration, RegistrationConfig, pose_error, read_transform
+    from estimation.registration import Registration, pose_error, read_transform
 
     if args.method == "semantic" and source.n_classes != target.n_classes:
         raise OctofactorError(f"source has {source.n_classes} classes, target "
                               f"{target.n_classes}: Semantic-ICP needs the same label set")
-    config = RegistrationConfig(
-        max_correspondence_distance=args.max_corr,
-        initial_correspondence_distance=args.initial_corr, cauchy_alpha=args.alpha,
-        semantic_weight=args.semantic_weight, max_iterations=args.max_iterations,
-        surface_radius=_surface_radius(args.surface_radius))
+    config = registration_config(args)
     init = read_transform(args.init) if args.init else None
     semantic = args.method == "semantic"
     if getattr(args, "estimator", None):
@@ -141,6 +147,38 @@ def _register(args, source, target, flip=None) -> dict:
     return out, result
 
 
+def registration_config(args):
+    """RegistrationConfig of --config FILE (else the CLI's d_max 0.2 m) and the flags given."""
+    from dataclasses import replace
+
+    from estimation.registration import RegistrationConfig
+    from pipelines.cli_common import base_config, changes
+
+    config = base_config(args, RegistrationConfig,
+                         RegistrationConfig(max_correspondence_distance=0.2))
+    update = changes(args, {"max_corr": "max_correspondence_distance",
+                            "initial_corr": "initial_correspondence_distance",
+                            "alpha": "cauchy_alpha", "semantic_weight": "semantic_weight",
+                            "max_iterations": "max_iterations"})
+    if args.surface_radius is not None:
+        update["surface_radius"] = _surface_radius(args.surface_radius)
+    return replace(config, **update)
+
+
+def _dump(args, command: str) -> bool:
+    from pipelines.cli_common import dump_config
+
+    return dump_config(args, registration_config(args), command)
+
+
+def _output(args) -> str:
+    from estimation.errors import OctofactorError
+
+    if not args.output:
+        raise OctofactorError("the output is missing: give -o/--output RESULT.json")
+    return args.output
+
+
 def _write(path: str, out: dict) -> None:
     from estimation.fileio import atomic_write
 
@@ -150,8 +188,13 @@ def _write(path: str, out: dict) -> None:
 
 
 def _summary(out: dict) -> str:
-    text = (f"{out['method']}: converged={out['converged']} ({out['reason']}), "
-            f"{out['iterations']} iterations, {out['inliers']} inliers, {out['time_s']:.3f} s")
+    """One line; a plug-in's result may not report iterations, inliers or a reason."""
+    parts = [f"converged={out['converged']}" + (f" ({out['reason']})" if out["reason"] else "")]
+    for key, unit in (("iterations", "iterations"), ("inliers", "inliers")):
+        if out[key] is not None:
+            parts.append(f"{out[key]} {unit}")
+    parts.append(f"{out['time_s']:.3f} s")
+    text = f"{out['method']}: " + ", ".join(parts)
     if "d_se3" in out:
         text += (f"; d_SE(3)={out['d_se3']:.4f}, t_err={out['t_err_m']:.4f} m, "
                  f"r_err={out['r_err_rad']:.4f} rad")
@@ -159,13 +202,16 @@ def _summary(out: dict) -> str:
 
 
 def run_register(args) -> int:
+    if _dump(args, "register"):
+        return 0
+    output = _output(args)
     from pipelines.validate import registration_options
 
     registration_options(args)  # before the clouds are read
     source = _load(args.source, args.method)
     target = _load(args.target, args.method)
     out, _ = _register(args, source, target)
-    _write(args.output, out)
+    _write(output, out)
     print(_summary(out))
     return 0 if out["converged"] else 1
 
@@ -173,11 +219,29 @@ def run_register(args) -> int:
 def run_calibrate(args) -> int:
     import numpy as np
 
+    from estimation.errors import OctofactorError
+
+    if _dump(args, "calibrate"):
+        return 0
+    # named flags fill their slots; the positionals fill the rest in the order HEADSET MAP
+    paths = {"headset": args.headset, "map": args.robot_map}
+    positionals = [p for p in (args.headset_pos, args.map_pos) if p is not None]
+    for which in ("headset", "map"):
+        if paths[which] is None and positionals:
+            paths[which] = positionals.pop(0)
+    if positionals:
+        raise OctofactorError(f"too many clouds: {', '.join(positionals)} (calibrate HEADSET "
+                              "MAP, or --headset H --map M)")
+    missing = [k for k, v in paths.items() if v is None]
+    if missing:
+        raise OctofactorError(f"missing the {' and the '.join(missing)} cloud: calibrate "
+                              "HEADSET MAP (or --headset H --map M)")
+    output = _output(args)
     from pipelines.validate import registration_options
 
     registration_options(args)  # before the clouds are read
-    robot_map = _load(args.robot_map, args.method)
-    headset = _load(args.headset, args.method)
+    headset = _load(paths["headset"], args.method)  # source first, as in register
+    robot_map = _load(paths["map"], args.method)
     flip = None
     if args.left_handed:
         flip = np.eye(4)
@@ -187,7 +251,7 @@ def run_calibrate(args) -> int:
     out["frames"] = "T = T_map_headset (headset -> robot map)"
     if args.left_handed:
         out["frames"] += f"; headset axis {args.flip_axis} negated first (left-handed input)"
-    _write(args.output, out)
+    _write(output, out)
     if args.graph and not result.converged:
         print(f"not writing {args.graph}: the calibration did not converge", file=sys.stderr)
     elif args.graph:

@@ -62,8 +62,8 @@ def integer(option: str, value, low: int | None = None, high: int | None = None,
 MAX_SEED = 2**32 - 1
 
 
-def seed(value, option: str = "--seed") -> int:
-    return integer(option, value, 0, MAX_SEED)
+def seed(value, option: str = "--seed", allow_none: bool = False) -> int | None:
+    return integer(option, value, 0, MAX_SEED, allow_none=allow_none)
 
 
 # Camera and image limits shared by vp, vpslam and the simulators.
@@ -89,16 +89,17 @@ def image_size(option: str, width, height) -> tuple[int, int]:
             integer(f"{option} height", height, MIN_IMAGE_SIDE, MAX_IMAGE_SIDE))
 
 
-def corridor_options(args) -> None:
-    """Bounds of ``simulate corridor``: sizes of a building, a walking pace, <= 20,000 frames."""
-    output_folder("OUT_DIR", _first(args, "out_dir", "output"))
-    seed(args.seed)
-    length = number("--length", args.length, 0.0, 1000.0, low_open=True)
-    number("--width", args.width, 0.5, 100.0)
-    number("--height", args.height, 0.5, 100.0)
-    speed = number("--speed", args.speed, 0.0, 10.0, low_open=True)
-    period = number("--period", args.period, 0.001, 10.0)
-    integer("--clutter", args.clutter, 0, 10000)
+def corridor_options(args, config) -> None:
+    """Bounds of ``simulate corridor`` on the final CorridorConfig (flags or --config file):
+    sizes of a building, a walking pace, at most MAX_CORRIDOR_FRAMES frames."""
+    output_folder("-o", output_path(args))
+    seed(config.seed)
+    length = number("--length", config.length, 0.0, 1000.0, low_open=True)
+    number("--width", config.width, 0.5, 100.0)
+    number("--height", config.height, 0.5, 100.0)
+    speed = number("--speed", config.speed, 0.0, 10.0, low_open=True)
+    period = number("--period", config.period, 0.001, 10.0)
+    integer("--clutter", config.clutter, 0, 10000)
     frames = length / (speed * period)
     if frames > MAX_CORRIDOR_FRAMES:
         raise OptionError(f"--length / (--speed x --period) gives {frames:.0f} frames, more "
@@ -110,28 +111,28 @@ MAX_CORRIDOR_FRAMES = 20000
 
 def registration_options(args) -> None:
     """Bounds of ``register`` / ``calibrate``."""
-    output_file("-o", args.output)
+    output_file("-o", output_path(args))
     output_file("--graph", getattr(args, "graph", None))
-    number("--max-corr", args.max_corr, 0.0, 1e6, low_open=True)
+    number("--max-corr", args.max_corr, 0.0, 1e6, low_open=True, allow_none=True)
     number("--initial-corr", args.initial_corr, 0.0, 1e6, low_open=True, allow_none=True)
-    number("--alpha", args.alpha, 0.0, 1e6, low_open=True)
-    integer("--max-iterations", args.max_iterations, 1, 100000)
+    number("--alpha", args.alpha, 0.0, 1e6, low_open=True, allow_none=True)
+    integer("--max-iterations", args.max_iterations, 1, 100000, allow_none=True)
 
 
 def room_options(args) -> None:
-    """Bounds of ``simulate room`` (the image size is checked where it is parsed)."""
-    output_folder("OUT_DIR", _first(args, "out_dir", "output"))
-    seed(args.seed)
-    number("--label-accuracy", args.label_accuracy, 0.0, 1.0)
-    number("--robot-label-accuracy", args.robot_label_accuracy, 0.0, 1.0)
-    number("--offset-m", args.offset_m, 0.0, 100.0)
-    number("--offset-deg", args.offset_deg, 0.0, 180.0)
+    """Bounds of ``simulate room``'s flags (the image size is checked where it is parsed)."""
+    output_folder("-o", output_path(args))
+    seed(args.seed, allow_none=True)
+    number("--label-accuracy", args.label_accuracy, 0.0, 1.0, allow_none=True)
+    number("--robot-label-accuracy", args.robot_label_accuracy, 0.0, 1.0, allow_none=True)
+    number("--offset-m", args.offset_m, 0.0, 100.0, allow_none=True)
+    number("--offset-deg", args.offset_deg, 0.0, 180.0, allow_none=True)
     number("--focal", args.focal, 0.0, MAX_FOCAL_PX, low_open=True, allow_none=True)
 
 
 def map_options(args) -> None:
     """Bounds of ``map``: a leaf size the octree's float32 keys can hold, a finite range."""
-    output_file("-o", args.output)
+    output_file("-o", output_path(args))
     number("--resolution", args.resolution, 0.0, 1e6, low_open=True)
     if number("--max-range", args.max_range, -1e9, 1e9) == 0.0:
         raise OptionError("--max-range must be positive, or negative for no limit, got 0")
@@ -146,18 +147,18 @@ def vpslam_options(args) -> None:
     """Bounds of ``vpslam`` (--intrinsics is checked as it is parsed)."""
     import os
 
-    out = _first(args, "output", "out")
+    out = output_path(args)
     output_folder("-o", out)
     if out is not None and os.path.isdir(out):  # the files a run writes there, before the run
         for name in VPSLAM_OUTPUTS:
             output_file("-o", os.path.join(out, name))
     number("--depth-scale", args.depth_scale, 0.0, 1e9, low_open=True, allow_none=True)
-    number("--vp-distance", args.vp_distance, 0.0, 1e12, low_open=True)
+    number("--vp-distance", args.vp_distance, 0.0, 1e12, low_open=True, allow_none=True)
     number("--gate", args.gate, 0.0, 1e12, low_open=True, allow_none=True)
-    number("--resolution", args.resolution, 0.0, 1e6, low_open=True)
-    if number("--max-range", args.max_range, -1e9, 1e9) == 0.0:
+    number("--resolution", args.resolution, 0.0, 1e6, low_open=True, allow_none=True)
+    if number("--max-range", args.max_range, -1e9, 1e9, allow_none=True) == 0.0:
         raise OptionError("--max-range must be positive, or negative for no limit, got 0")
-    number("--vo-scale", args.vo_scale, 0.05, 1.0)
+    number("--vo-scale", args.vo_scale, 0.05, 1.0, allow_none=True)
     integer("--max-frames", args.max_frames, 1, 10**9, allow_none=True)
 
 
@@ -184,9 +185,8 @@ def output_folder(option: str, path) -> None:
         raise OptionError(f"{option} {path}: exists and is not a folder")
 
 
-def _first(args, *names):
-    """The first of ``names`` that ``args`` has (option names differ between versions)."""
-    for name in names:
-        if getattr(args, name, None) is not None:
-            return getattr(args, name)
-    return None
+def output_path(args):
+    """The output a command was given (-o/--output or the old positional), None if none
+    (``pipelines.cli_common.output_of`` without its note)."""
+    positional = getattr(args, "_output_positional", None)
+    return positional if positional is not None else getattr(args, "output", None)

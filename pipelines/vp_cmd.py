@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from estimation.errors import OctofactorError
+from pipelines.cli_common import add_output
 
 # BGR colours of VP 0, 1, 2 (and grey for segments that support none)
 _COLOURS = ((0, 0, 255), (0, 200, 0), (255, 80, 0))
@@ -30,8 +31,9 @@ def register(add_command) -> None:
     parser.add_argument("--json", action="store_true",
                         help="print one JSON object per image and line (the default output; "
                              "without it a short text line per image)")
-    parser.add_argument("--plot", metavar="DIR", type=Path,
-                        help="write overlay PNGs (segments coloured by VP, VPs marked) to DIR")
+    add_output(parser, "write overlay PNGs (segments coloured by VP, VPs marked) to "
+               "OUT_DIR/<image>_vp.png", required=False, metavar="OUT_DIR",
+               old_option="--plot")
     parser.set_defaults(func=run)
 
 
@@ -110,11 +112,11 @@ def run(args: argparse.Namespace) -> int:
     from perception.vanishing_points import detect_manhattan, detect_seed
 
     K = parse_intrinsics(args.intrinsics)
-    if args.plot is not None:
+    if args.output is not None:
         from pipelines.validate import output_folder
 
-        output_folder("--plot", args.plot)
-        os.makedirs(args.plot, exist_ok=True)
+        output_folder("-o", args.output)
+        os.makedirs(args.output, exist_ok=True)
     for image_path in args.images:
         gray = read_image(image_path)
         if args.method == "seed":
@@ -131,8 +133,8 @@ def run(args: argparse.Namespace) -> int:
                 parts.append(f"{where} [{vp['inliers']} segments]")
             print(f"{image_path}: {record['ms']:.1f} ms, "
                   f"{len(parts)} VP(s) {'; '.join(parts)}", flush=True)
-        if args.plot is not None:
-            write_overlay(Path(args.plot) / (Path(image_path).stem + "_vp.png"), gray, result)
+        if args.output is not None:
+            write_overlay(Path(args.output) / (Path(image_path).stem + "_vp.png"), gray, result)
     return 0
 
 

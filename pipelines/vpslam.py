@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from estimation.config import coerce_fields
 from estimation.errors import OctofactorError
 from estimation.fileio import atomic_write
 from estimation.vp_ekf import VpEkfConfig
@@ -99,6 +100,7 @@ class VpSlamConfig:
     direction_factors: str = "predicted"
 
     def __post_init__(self):
+        coerce_fields(self)  # VpSlamConfig(**report["config"]) == the run's config
         for name, allowed in (("vp_model", VP_MODELS), ("detector", DETECTORS),
                               ("world_frame", WORLD_FRAMES),
                               ("direction_factors", DIRECTION_FACTORS)):
@@ -536,16 +538,22 @@ MAX_SKIPPED_FRACTION = 0.5
 
 def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), intrinsics=None,
                progress: bool = True, max_frames: int | None = None,
-               odometry_cache: dict | None = None, name: str | None = None) -> VpSlamResult:
+               odometry_cache: dict | None = None, name: str | None = None,
+               ellipses: bool = True, distortion=None) -> VpSlamResult:
     """Run :class:`VpSlam` over the sequence in ``seq_dir``; write the outputs to ``out_dir``.
 
     ``intrinsics`` (perception.rgbd.CameraIntrinsics) overrides the sequence's camera file.
+    ``name`` labels the run: report.json, the figure's legend and ``<name>.txt`` (a copy of
+    trajectory.txt, so that evo and ``octofactor eval`` tell runs apart); ``ellipses`` False
+    draws no 2-sigma ellipses in trajectory.png.
     With ``out_dir`` None nothing is written (benchmarks). Runs of several filter variants on
-    one sequence can share the odometry through the same ``odometry_cache`` dict.
+    one sequence can share the odometry through the same ``odometry_cache`` dict (only runs
+    on the same frames: the same ``distortion``). ``distortion`` (OpenCV k1, k2, p1, p2[, k3])
+    undistorts every frame on reading (perception.rgbd.Undistorter).
     """
     from perception.rgbd import TumRgbdSequence
 
-    sequence = TumRgbdSequence(seq_dir, intrinsics=intrinsics)
+    sequence = TumRgbdSequence(seq_dir, intrinsics=intrinsics, distortion=distortion)
     n_frames = len(sequence) if max_frames is None else min(len(sequence), max_frames)
     if n_frames == 0:
         raise OctofactorError(f"{seq_dir}: the sequence has no associated frames")
@@ -603,7 +611,7 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
                      timings, map_ms, sequence, stamps, T, covs[-1], name)
     out = VpSlamResult(slam.graph, tree, report, stamps, T[:, :3, 3], covs, T, gt_positions)
     if out_dir is not None:
-        write_outputs(out, out_dir, sequence)
+        write_outputs(out, out_dir, sequence, ellipses=ellipses)
     return out
 
 
@@ -634,14 +642,19 @@ def _fuse(graph, config: VpSlamConfig):
     return fuse(graph, config.map_resolution, max_range=config.max_range)
 
 
-def write_outputs(result: VpSlamResult, out_dir, sequence=None) -> None:
-    """trajectory.txt (TUM), graph.g2o, graph.graph (OctoMap ScanGraph: poses + scans),
-    map.bt, map.ot, trajectory.png and report.json."""
+def write_outputs(result: VpSlamResult, out_dir, sequence=None, ellipses: bool = True) -> None:
+    """trajectory.txt (TUM) and its copy <name>.txt when the run has a name, graph.g2o,
+    graph.graph (OctoMap ScanGraph: poses + scans), map.bt, map.ot, trajectory.png and
+    report.json."""
     from estimation.io import write_g2o, write_scan_graph, write_tum
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     write_tum(out / "trajectory.txt", result.graph)
+    name = result.report.get("name")
+    if name and safe_file_stem(name) != "trajectory":
+        # evo and `octofactor eval` label a trajectory by its file name
+        write_tum(out / f"{safe_file_stem(name)}.txt", result.graph)
     write_g2o(out / "graph.g2o", result.graph)
     if result.tree is not None:
         write_scan_graph(out / "graph.graph", result.graph)
@@ -649,31 +662,41 @@ def write_outputs(result: VpSlamResult, out_dir, sequence=None) -> None:
         # writeBinary does, and the .ot must keep the full log-odds.
         result.tree.write_ot(out / "map.ot")
         result.tree.write_bt(out / "map.bt")
-    plot_trajectory(result, out / "trajectory.png")
+    plot_trajectory(result, out / "trajectory.png", ellipses=ellipses)
     with atomic_write(out / "report.json", "w") as handle:
         json.dump(result.report, handle, indent=2)
         handle.write("\n")
 
 
-def plot_trajectory(result: VpSlamResult, path) -> None:
-    """Top (x-y) and side (x-z) views, estimate vs ground truth, 2-sigma ellipses (Fig. 8)."""
+def safe_file_stem(name: str) -> str:
+    """``name`` usable as a file name stem (path separators and spaces replaced)."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9._+-]+", "_", name).strip("._") or "run"
+
+
+def plot_trajectory(result: VpSlamResult, path, ellipses: bool = True) -> None:
+    """Top (x-y) and side (x-z) views, estimate vs ground truth, thin 2-sigma ellipses under
+    the trajectory (Fig. 8); the legend names the run."""
     from pipelines.plotting import covariance_ellipse, save_figure, use_agg
 
     plt = use_agg()
     fig, axes = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
     p, gt, covs = result.positions, result.positions_gt, result.position_covs
     step = max(1, len(p) // 40)
+    label_est = result.report.get("name") or "estimate"
     for ax, (a, b), label in ((axes[0], (0, 1), "y [m]"), (axes[1], (0, 2), "z [m]")):
         if np.isfinite(gt).all(axis=1).any():
-            ax.plot(gt[:, a], gt[:, b], "k-", lw=1.2, label="ground truth")
-        ax.plot(p[:, a], p[:, b], "b.-", lw=0.8, ms=2, label="estimate")
-        for k in range(0, len(p), step):
+            ax.plot(gt[:, a], gt[:, b], "k-", lw=1.2, label="ground truth", zorder=3)
+        ax.plot(p[:, a], p[:, b], "b.-", lw=0.8, ms=2, label=label_est, zorder=4)
+        for k in range(0, len(p), step) if ellipses else ():
             ellipse = covariance_ellipse(p[k, [a, b]], covs[k][np.ix_([a, b], [a, b])])
-            ax.plot(ellipse[:, 0], ellipse[:, 1], "r-", lw=0.5)
+            ax.plot(ellipse[:, 0], ellipse[:, 1], "r-", lw=0.3, alpha=0.5, zorder=2,
+                    label="2-sigma" if k == 0 else None)
         ax.set_ylabel(label)
         ax.grid(True, lw=0.3)
-    axes[0].set_title(f"VP-EKF SLAM ({result.report['vp_model']}): top and side views, "
-                      "2-sigma ellipses")
+    axes[0].set_title(f"VP-EKF SLAM ({result.report['vp_model']}): top and side views"
+                      + (", 2-sigma ellipses" if ellipses else ""))
     axes[0].legend(loc="best", fontsize=8)
     axes[1].set_xlabel("x [m]")
     save_figure(fig, path)
@@ -718,6 +741,7 @@ def _report(config, slam, results, skipped_frames, skipped_list, notes_count, ti
         "filter_state": config.ekf.state,
         "world_frame": slam.world_frame,
         "estimator": config.estimator,
+        "distortion": None if sequence.distortion is None else list(sequence.distortion),
         "vp_detections": int(slam.counts["vp_detections"]),
         "vp_updates": int(slam.counts["vp_updated"]),
         "vp_gated": int(slam.counts["vp_gated"]),

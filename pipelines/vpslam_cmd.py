@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import argparse
 
+from pipelines.cli_common import add_config, add_output, add_seed
+
 
 def register(add_command) -> None:
     parser = add_command(
@@ -10,15 +12,24 @@ def register(add_command) -> None:
                   "trajectory, pose graph, octree map, figure and report")
     parser.add_argument("seq_dir", metavar="SEQ_DIR",
                         help="folder with rgb.txt, depth.txt, camera.txt [, groundtruth.txt]")
-    parser.add_argument("-o", "--out", required=True, metavar="OUT", help="output folder")
+    add_output(parser, "output folder", metavar="OUT_DIR", old_option="--out", required=False)
+    parser.add_argument("--name", default=None,
+                        help="the run's name in report.json, the figure's legend and "
+                        "OUT_DIR/<name>.txt (a copy of trajectory.txt, so evo labels runs "
+                        "apart); default: the output folder's name (two runs on one sequence "
+                        "get different names)")
     parser.add_argument("--intrinsics", metavar="FX,FY,CX,CY", type=_intrinsics,
                         help="override the sequence's camera file (image size from camera.txt "
                              "or the first image)")
+    parser.add_argument("--distortion", metavar="K1,K2,P1,P2[,K3]", default=None,
+                        help="the colour camera's lens distortion (OpenCV order; TUM fr1: "
+                             "0.2624,-0.9531,-0.0054,0.0026,1.1633): frames are undistorted "
+                             "on reading, the intrinsics stay the pinhole camera")
     parser.add_argument("--depth-scale", type=float, default=None,
                         help="depth PNG units per metre (TUM: 5000; default from camera.txt)")
     parser.add_argument("--no-vp", action="store_true",
                         help="VO only, no vanishing-point update (the paper's baseline)")
-    parser.add_argument("--vp-model", choices=("manhattan", "point"), default="manhattan",
+    parser.add_argument("--vp-model", choices=("manhattan", "point"), default=None,
                         help="manhattan (default): up to three directions of the structure; "
                              "point: the paper's one VP (eq. (11)-(13))")
     parser.add_argument("--detector", choices=("normals+lines", "normals", "lines", "seed"),
@@ -37,33 +48,39 @@ def register(add_command) -> None:
                              "the geometry's rotation-translation correlations), motion (the "
                              "same sigmas, uncorrelated) or information (fitted on the "
                              "simulated corridor)")
-    parser.add_argument("--keyframes", action="store_true",
+    parser.add_argument("--keyframes", action="store_true", default=None,
                         help="odometry against keyframes (cloned in the filter) instead of "
                              "frame to frame (docs/vp_ekf.md)")
-    parser.add_argument("--paper", action="store_true",
-                        help="the seed paper's system: Euler state, point model, seed detector, "
-                             "first body frame, simulator-fitted VO covariance (flags after it "
-                             "still apply)")
-    parser.add_argument("--vp-distance", type=float, default=1000.0,
-                        help="d of eq. (12) in metres (point model; default 1000: a direction)")
-    parser.add_argument("--gate", type=float, default=None,
-                        help="chi-square gate of eq. (15), 2 dof (default: 99 %% = 9.21)")
-    parser.add_argument("--resolution", type=float, default=0.05, help="octree leaf size (m)")
-    parser.add_argument("--max-range", type=float, default=5.0,
-                        help="cut map rays at this range (m, -1: no limit)")
-    parser.add_argument("--no-map", action="store_true", help="skip clouds and octree")
-    parser.add_argument("--vo-scale", type=float, default=1.0,
-                        help="image scale for the odometry only (0.5: ~4x faster, noisier)")
-    parser.add_argument("--max-frames", type=int, default=None, help="use the first N frames")
-    parser.add_argument("--estimator", default="vp_ekf", metavar="NAME",
-                        help="filter estimator from `octofactor plugins` (vp_ekf)")
     parser.add_argument("--direction-factors", choices=("predicted", "fixed", "none"),
                         default=None,
                         help="graph.g2o gets a direction factor per direction the filter "
                              "accepted, its world direction the filter's prediction of the "
                              "axis (predicted, default), the axis when first accepted (fixed), "
                              "or none (docs/vp_ekf.md)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--paper", action="store_true",
+                        help="the seed paper's system: Euler state, point model, seed detector, "
+                             "first body frame, simulator-fitted VO covariance (flags after it "
+                             "still apply)")
+    parser.add_argument("--vp-distance", type=float, default=None,
+                        help="d of eq. (12) in metres (point model; default 1000: a direction)")
+    parser.add_argument("--gate", type=float, default=None,
+                        help="chi-square gate of eq. (15), 2 dof (default: 99 %% = 9.21)")
+    parser.add_argument("--resolution", type=float, default=None,
+                        help="octree leaf size (m; default 0.05)")
+    parser.add_argument("--max-range", type=float, default=None,
+                        help="cut map rays at this range (m, -1: no limit; default 5)")
+    parser.add_argument("--no-map", action="store_true", help="skip clouds and octree")
+    parser.add_argument("--vo-scale", type=float, default=None,
+                        help="image scale for the odometry only (default 1; 0.5: ~4x faster, "
+                        "noisier)")
+    parser.add_argument("--max-frames", type=int, default=None, help="use the first N frames")
+    parser.add_argument("--estimator", default=None, metavar="NAME",
+                        help="filter estimator from `octofactor plugins` (vp_ekf)")
+    parser.add_argument("--no-ellipses", action="store_true",
+                        help="draw no 2-sigma ellipses in trajectory.png")
+    add_config(parser, "VpSlamConfig")
+    add_seed(parser, None, "OpenCV's RANSAC of the PnP guess; the detectors' samplers are "
+             "seeded by their configs")
     parser.set_defaults(func=run)
 
 
@@ -83,20 +100,52 @@ def _intrinsics(text: str) -> tuple[float, float, float, float]:
 
 def run(args) -> int:
     import json
-    import math
     import sys
-    from dataclasses import replace
     from pathlib import Path
 
-    from estimation.errors import OctofactorError
+    from pipelines.cli_common import dump_config, output_of
     from pipelines.validate import vpslam_options
-    from pipelines.vpslam import VpSlamConfig, run_vpslam
+    from pipelines.vpslam import run_vpslam
 
     vpslam_options(args)
     intrinsics = None
     if args.intrinsics is not None or args.depth_scale is not None:
         intrinsics = _resolve_intrinsics(Path(args.seq_dir), args.intrinsics, args.depth_scale)
-    config = VpSlamConfig.paper() if args.paper else VpSlamConfig()
+    config = build_config(args)
+    if dump_config(args, config, "vpslam"):
+        return 0
+    if args.seed is not None and not args.deterministic:
+        from pipelines.runtime import set_seed
+
+        set_seed(args.seed)
+    out_dir = output_of(args)
+    name = args.name or Path(out_dir).resolve().name
+    result = run_vpslam(args.seq_dir, out_dir, config, intrinsics=intrinsics,
+                        progress=not args.quiet, max_frames=args.max_frames, name=name,
+                        ellipses=not args.no_ellipses, distortion=_distortion(args.distortion))
+    summary = {k: result.report.get(k) for k in (
+        "frames", "vp_updates", "vp_gated", "ate_aligned_rmse_m", "ate_unaligned_rmse_m",
+        "rot_err_mean_deg", "final_drift_xyz_m",
+        "ms_per_frame_median", "total_ms_per_frame_median")}
+    print(json.dumps(summary), file=sys.stdout)
+    return 0
+
+
+def build_config(args):
+    """The VpSlamConfig of the command line: --config FILE (or --paper, or the defaults), then
+    the flags given."""
+    import math
+    from dataclasses import replace
+
+    from estimation.errors import OctofactorError
+    from pipelines.cli_common import base_config
+    from pipelines.vpslam import VpSlamConfig
+
+    if args.config and args.paper:
+        raise OctofactorError("give --config FILE or --paper, not both (--paper is a config: "
+                              "octofactor vpslam SEQ --paper --dump-config)")
+    config = base_config(args, VpSlamConfig,
+                         VpSlamConfig.paper() if args.paper else VpSlamConfig())
     ekf, odometry = config.ekf, config.odometry
     if args.filter is not None:
         ekf = replace(ekf, state=args.filter)
@@ -104,36 +153,41 @@ def run(args) -> int:
         if not (args.gate > 0 and math.isfinite(args.gate)):
             raise OctofactorError(f"--gate must be a positive number, got {args.gate}")
         ekf = replace(ekf, gate_chi2=args.gate)
-    if not math.isfinite(args.vp_distance) or args.vp_distance <= 0:
-        raise OctofactorError(f"--vp-distance must be a positive number, got {args.vp_distance}")
-    ekf = replace(ekf, vp_distance=args.vp_distance)
+    if args.vp_distance is not None:
+        if not math.isfinite(args.vp_distance) or args.vp_distance <= 0:
+            raise OctofactorError(f"--vp-distance must be a positive number, got "
+                                  f"{args.vp_distance}")
+        ekf = replace(ekf, vp_distance=args.vp_distance)
     if args.vo_cov is not None:
         odometry = replace(odometry, cov_model=args.vo_cov)
-    if args.keyframes:
-        config = replace(config, keyframes=True)
-    vp_model = "none" if args.no_vp else (config.vp_model if args.paper and
-                                          args.vp_model == "manhattan" else args.vp_model)
-    changes = dict(vp_model=vp_model, ekf=ekf, odometry=odometry,
-                   map_resolution=args.resolution, max_range=args.max_range,
-                   build_map=not args.no_map, vo_scale=args.vo_scale, estimator=args.estimator)
-    if args.detector is not None:
-        changes["detector"] = args.detector
-    elif vp_model == "manhattan":
-        changes["detector"] = "normals+lines"
-    if args.world_frame is not None:
-        changes["world_frame"] = args.world_frame
-    if args.direction_factors is not None:
-        changes["direction_factors"] = args.direction_factors
-    config = replace(config, **changes)
-    result = run_vpslam(args.seq_dir, args.out, config, intrinsics=intrinsics,
-                        progress=not args.quiet, max_frames=args.max_frames,
-                        name=Path(args.out).name)
-    summary = {k: result.report.get(k) for k in (
-        "frames", "vp_updates", "vp_gated", "ate_aligned_rmse_m", "ate_unaligned_rmse_m",
-        "rot_err_mean_deg", "final_drift_xyz_m",
-        "ms_per_frame_median", "total_ms_per_frame_median")}
-    print(json.dumps(summary), file=sys.stdout)
-    return 0
+    vp_model = "none" if args.no_vp else (args.vp_model or config.vp_model)
+    changes = dict(vp_model=vp_model, ekf=ekf, odometry=odometry)
+    for dest, field in (("resolution", "map_resolution"), ("max_range", "max_range"),
+                        ("vo_scale", "vo_scale"), ("estimator", "estimator"),
+                        ("world_frame", "world_frame"), ("detector", "detector"),
+                        ("keyframes", "keyframes"), ("direction_factors", "direction_factors")):
+        if getattr(args, dest) is not None:
+            changes[field] = getattr(args, dest)
+    if args.no_map:
+        changes["build_map"] = False
+    if args.detector is None and vp_model == "manhattan" and config.detector == "seed":
+        changes["detector"] = "normals+lines"  # the seed detector gives one VP
+    return replace(config, **changes)
+
+
+def _distortion(text):
+    """The --distortion coefficients as a tuple (None: none given)."""
+    if text is None:
+        return None
+    from estimation.errors import OctofactorError
+    from perception.rgbd import check_distortion
+
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise OctofactorError(f"--distortion must be comma-separated numbers, got "
+                              f"{text!r}") from None
+    return check_distortion(values)
 
 
 def _resolve_intrinsics(seq_dir, fx_fy_cx_cy, depth_scale):

@@ -30,7 +30,7 @@ def test_help_imports_nothing_heavy():
 def test_graph_convert_spherical_scan_is_byte_identical(shared_data, tmp_path):
     source = shared_data / "octomap" / "spherical_scan.graph"
     out = tmp_path / "x.graph"
-    assert main(["graph", "convert", str(source), str(out)]) == 0
+    assert main(["graph", "convert", str(source), "-o", str(out)]) == 0
     assert out.read_bytes() == source.read_bytes()
 
 
@@ -42,7 +42,7 @@ def test_graph_info(shared_data, capsys):
 
 def test_graph_convert_reports_what_is_dropped(shared_data, tmp_path):
     result = run_cli("graph", "convert", str(shared_data / "octomap" / "spherical_scan.graph"),
-                     str(tmp_path / "x.g2o"))
+                     "-o", str(tmp_path / "x.g2o"))
     assert result.returncode == 0
     assert "scans" in result.stderr and "dropped" in result.stderr
 
@@ -50,7 +50,8 @@ def test_graph_convert_reports_what_is_dropped(shared_data, tmp_path):
 def test_graph_optimize_prints_errors_and_reduces_them(tmp_path, capsys):
     sim = simulate_loop_graph(np.random.default_rng(0), n_poses=12)
     write_g2o(tmp_path / "in.g2o", sim.graph)
-    assert main(["graph", "optimize", str(tmp_path / "in.g2o"), str(tmp_path / "out.g2o")]) == 0
+    assert main(["graph", "optimize", str(tmp_path / "in.g2o"), "-o",
+                 str(tmp_path / "out.g2o")]) == 0
     lines = capsys.readouterr().out.splitlines()
     initial = float(lines[0].split(":")[1])
     final = float(lines[1].split(":")[1].split()[0])

@@ -174,11 +174,11 @@ def test_cli_writes_a_sequence(tmp_path, capsys):
     from pipelines.cli import main
 
     out = tmp_path / "seq"
-    assert main(["simulate", "corridor", str(out), "--seed", "2", "--length", "3.5",
-                 "--clutter", "2", "--quiet"]) == 0
+    assert main(["simulate", "corridor", "-o", str(out), "--seed", "2", "--length", "3.5",
+                 "--clutter", "2"]) == 0
     assert "5 frames" in capsys.readouterr().out
     assert len(TumRgbdSequence(out)) == 5
-    assert main(["simulate", "corridor", str(out), "--width", "0", "--quiet"]) == 2
+    assert main(["simulate", "corridor", "-o", str(out), "--width", "0", "--quiet"]) == 2
     assert "--width must be" in capsys.readouterr().err
 
 

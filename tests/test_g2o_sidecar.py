@@ -252,7 +252,8 @@ def test_convert_g2o_to_tum_uses_the_sidecar(tmp_path, capsys):
     stamps = [1305031102.175304, 1305031102.211214, 1305031102.243211]
     pg = _graph(np.random.default_rng(2), stamps)
     write_g2o(tmp_path / "x.g2o", pg)
-    assert main(["graph", "convert", str(tmp_path / "x.g2o"), str(tmp_path / "traj.txt")]) == 0
+    assert main(["graph", "convert", str(tmp_path / "x.g2o"), "-o",
+                 str(tmp_path / "traj.txt")]) == 0
     back = read_tum(tmp_path / "traj.txt")
     assert [back.nodes[k].timestamp for k in range(3)] == stamps
     assert main(["graph", "info", str(tmp_path / "x.g2o")]) == 0
@@ -261,7 +262,7 @@ def test_convert_g2o_to_tum_uses_the_sidecar(tmp_path, capsys):
 
 def test_convert_foreign_g2o_to_tum_refuses_in_one_line(tmp_path, capsys):
     source = _foreign_g2o(tmp_path)
-    assert main(["graph", "convert", str(source), str(tmp_path / "traj.txt")]) == 2
+    assert main(["graph", "convert", str(source), "-o", str(tmp_path / "traj.txt")]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1, err
     assert err.startswith(f"octofactor: error: {tmp_path / 'traj.txt'}: a TUM trajectory needs "

@@ -104,7 +104,7 @@ def test_cli_map_is_byte_identical_to_graph2tree(shared_data, tmp_path):
         assert out.read_bytes() == ref_path.read_bytes()
     # octree info / convert / export
     assert main(["octree", "info", str(tmp_path / "ours.bt")]) == 0
-    assert main(["octree", "convert", str(tmp_path / "ours.ot"), str(tmp_path / "c.bt")]) == 0
+    assert main(["octree", "convert", str(tmp_path / "ours.ot"), "-o", str(tmp_path / "c.bt")]) == 0
     assert (tmp_path / "c.bt").read_bytes() == ref.read_bytes()
     assert main(["map", str(graph), "-r", "0.1", "-o", str(tmp_path / "full.bt")]) == 0
     assert main(["octree", "export", str(tmp_path / "full.bt"), "-o",

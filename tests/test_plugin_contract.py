@@ -139,3 +139,32 @@ def test_registration_contract(name):
 
     error = gtsam.Pose3(T).localCoordinates(gtsam.Pose3(scenario.T_target_source))
     assert np.linalg.norm(error) < 0.05
+
+
+def test_plugin_warnings_are_one_clean_line_in_every_command(example_plugin_path, tmp_path):
+    """Outside `octofactor plugins` too (here: register --estimator), a skipped plug-in is one
+    line 'octofactor: warning: ...', not a raw Python warning with file and source line."""
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(example_plugin_path),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    cloud = "".join(f"{x} {y} {z}\n" for x in range(3) for y in range(3) for z in range(2))
+    (tmp_path / "a.ply").write_text("ply\nformat ascii 1.0\nelement vertex 18\nproperty float "
+                                    "x\nproperty float y\nproperty float z\nend_header\n" + cloud)
+    result = subprocess.run([sys.executable, "-m", "pipelines", "register", "a.ply", "a.ply",
+                             "--method", "gicp", "--estimator", "no_such_estimator",
+                             "-o", str(tmp_path / "r.json")], cwd=tmp_path,
+                            capture_output=True, text=True, env=env, timeout=300)
+    assert result.returncode == 2
+    lines = result.stderr.strip().splitlines()
+    warning = [line for line in lines if "example_broken" in line]
+    assert len(warning) == 1 and warning[0].startswith("octofactor: warning: "), lines
+    assert "PluginWarning" not in result.stderr and "warnings.warn" not in result.stderr
+
+
+def test_a_plugin_result_without_iterations_prints_no_none():
+    from pipelines.register_cmd import _summary
+
+    out = {"method": "my_icp", "converged": True, "reason": "", "iterations": None,
+           "inliers": None, "time_s": 0.5}
+    assert _summary(out) == "my_icp: converged=True, 0.500 s"
+    out.update(iterations=7, inliers=100, reason="converged")
+    assert _summary(out) == "my_icp: converged=True (converged), 7 iterations, 100 inliers, 0.500 s"

@@ -216,7 +216,7 @@ def _write_chain(path, disconnected=False) -> None:
 @pytest.mark.parametrize("method", ["lm", "isam2"])
 def test_graph_optimize_says_it_anchors_the_first_node(tmp_path, capsys, method):
     _write_chain(tmp_path / "in.g2o")
-    code = main(["graph", "optimize", str(tmp_path / "in.g2o"), str(tmp_path / "out.g2o"),
+    code = main(["graph", "optimize", str(tmp_path / "in.g2o"), "-o", str(tmp_path / "out.g2o"),
                  "--method", method])
     captured = capsys.readouterr()
     assert code == 0, captured.err
@@ -231,7 +231,7 @@ def test_graph_optimize_says_it_anchors_the_first_node(tmp_path, capsys, method)
 
 def test_graph_optimize_gtsam_failure_is_one_line_exit_2(tmp_path, capsys):
     _write_chain(tmp_path / "in.g2o", disconnected=True)
-    code = main(["graph", "optimize", str(tmp_path / "in.g2o"), str(tmp_path / "out.g2o"),
+    code = main(["graph", "optimize", str(tmp_path / "in.g2o"), "-o", str(tmp_path / "out.g2o"),
                  "--method", "isam2"])
     captured = capsys.readouterr()
     assert code == 2

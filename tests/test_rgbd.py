@@ -288,3 +288,33 @@ def test_resized_intrinsics_keep_pixel_centres_and_project_alike():
     np.testing.assert_allclose(uv_half, (uv_full + 0.5) / 2 - 0.5)
     assert (half.width, half.height, half.depth_scale) == (320, 240, intr.depth_scale)
     assert half.resized(640, 480) == intr
+
+
+def test_undistorter_puts_a_point_where_the_pinhole_camera_sees_it():
+    """A dot drawn where the distorted camera images a 3-D point lands, after undistortion,
+    on the pinhole projection of that point; depth is resampled without new values."""
+    from perception.rgbd import CameraIntrinsics, RgbdFrame, Undistorter
+
+    intr = CameraIntrinsics(517.3, 516.5, 318.6, 255.3, 640, 480)
+    D = np.array([0.2624, -0.9531, -0.0054, 0.0026, 1.1633])  # TUM fr1
+    P = np.array([[0.45, -0.3, 1.2]])
+    uv_pinhole = (intr.K @ (P[0] / P[0, 2]))[:2]
+    uv_distorted = cv2.projectPoints(P, np.zeros(3), np.zeros(3), intr.K, D)[0].reshape(2)
+    assert np.linalg.norm(uv_distorted - uv_pinhole) > 5  # the lens matters here
+    rgb = np.zeros((480, 640, 3), np.uint8)
+    cv2.circle(rgb, tuple(int(round(v)) for v in uv_distorted), 3, (255, 255, 255), -1)
+    depth = np.where(rgb[..., 0] > 0, 2.0, 0.0).astype(np.float32)
+    frame = RgbdFrame(0, 0.0, rgb, depth)
+    out = Undistorter(intr, D)(frame)
+    rows, cols = np.nonzero(out.rgb[..., 0] > 128)
+    np.testing.assert_allclose([cols.mean(), rows.mean()], uv_pinhole, atol=1.0)
+    assert set(np.unique(out.depth_m)) <= {0.0, 2.0}
+    assert Undistorter(intr, (0, 0, 0, 0))(frame) is frame  # no distortion: no copy
+
+
+@pytest.mark.parametrize("bad", [(0.1, 0.2), (0.1, 0.2, 0.0, 0.0, float("nan")), (1e9, 0, 0, 0)])
+def test_bad_distortion_is_refused(bad):
+    from perception.rgbd import check_distortion
+
+    with pytest.raises(PerceptionError, match="distortion"):
+        check_distortion(bad)

@@ -117,7 +117,8 @@ def test_cli_simulate_then_register(tmp_path):
     from pipelines.cli import main
 
     out = tmp_path / "room"
-    assert main(["simulate", "room", str(out), "--views", "dining", "--image-size", "160x120"]) == 0
+    assert main(["simulate", "room", "-o", str(out), "--views", "dining", "--image-size",
+                 "160x120"]) == 0
     names = (out / "classes.txt").read_text().split()
     assert tuple(names) == CLASS_NAMES
     robot_map = SemanticCloud.read_ply(out / "robot_map.ply")
@@ -130,7 +131,7 @@ def test_cli_simulate_then_register(tmp_path):
     init = T_gt @ gtsam.Pose3(gtsam.Rot3.Yaw(0.05), np.array([0.1, 0.0, 0.0])).matrix()
     np.savetxt(tmp_path / "init.txt", init)
     result = tmp_path / "result.json"
-    code = main(["calibrate", str(out / "robot_map.ply"), str(out / "headset_dining.ply"),
+    code = main(["calibrate", str(out / "headset_dining.ply"), str(out / "robot_map.ply"),
                  "--init", str(tmp_path / "init.txt"), "--gt",
                  str(out / "T_map_headset_dining.txt"), "-o", str(result)])
     data = json.loads(result.read_text())

@@ -242,7 +242,7 @@ def test_corrupt_and_missing_files_name_the_file(tmp_path):
 def test_cli_json_schema_and_plot(shared_data, tmp_path, capsys):
     image = shared_data / "yud_train" / "P1020177" / "P1020177.jpg"
     assert main(["vp", str(image), str(image), "--intrinsics", INTRINSICS_YUD, "--json",
-                 "--plot", str(tmp_path)]) == 0
+                 "-o", str(tmp_path)]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 2
     record = json.loads(lines[0])
