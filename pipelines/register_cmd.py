@@ -167,7 +167,9 @@ def registration_config(args):
 
 def _dump(args, command: str) -> bool:
     from pipelines.cli_common import dump_config
+    from pipelines.validate import registration_numbers
 
+    registration_numbers(args)  # named in the error, before RegistrationConfig sees them
     return dump_config(args, registration_config(args), command)
 
 

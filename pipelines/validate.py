@@ -113,6 +113,11 @@ def registration_options(args) -> None:
     """Bounds of ``register`` / ``calibrate``."""
     output_file("-o", output_path(args))
     output_file("--graph", getattr(args, "graph", None))
+    registration_numbers(args)
+
+
+def registration_numbers(args) -> None:
+    """The numeric flags of ``register`` / ``calibrate``, before a config is built from them."""
     number("--max-corr", args.max_corr, 0.0, 1e6, low_open=True, allow_none=True)
     number("--initial-corr", args.initial_corr, 0.0, 1e6, low_open=True, allow_none=True)
     number("--alpha", args.alpha, 0.0, 1e6, low_open=True, allow_none=True)
