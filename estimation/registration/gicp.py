@@ -148,11 +148,10 @@ class RegistrationConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise EstimationError(f"{name} must be a positive finite number, got {value!r}")
-        if self.initial_correspondence_distance is not None and not (
-                math.isfinite(self.initial_correspondence_distance)
-                and self.initial_correspondence_distance > 0):
-            raise EstimationError(f"initial_correspondence_distance must be a positive finite "
-                                  f"number or None, got {self.initial_correspondence_distance!r}")
+        if self.initial_correspondence_distance is not None and \
+                not self.initial_correspondence_distance > 0:  # NaN fails too
+            raise EstimationError(f"initial_correspondence_distance must be a positive number "
+                                  f"or None, got {self.initial_correspondence_distance!r}")
         if self.anneal not in ("iteration", "convergence"):
             raise EstimationError(
                 f"anneal must be 'iteration' or 'convergence', got {self.anneal!r}")
