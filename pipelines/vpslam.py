@@ -73,6 +73,10 @@ class VpSlamConfig:
         run frame to frame.
     keyframe_translation, keyframe_rotation_deg : m, degrees; a frame further than this from
         the keyframe (filtered poses) becomes the next keyframe
+    vp_min_motion : (degrees, m); directions are measured only on frames that turned or moved
+        at least this much since the last frame measured (either suffices): consecutive
+        views of one scene give errors that are far from independent. (0, 0), the default,
+        measures every frame (docs/vp_ekf.md gives the trade-off measured on real data)
     estimator : name of a registered filter estimator (``octofactor plugins``) whose
         ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter
     direction_factors : each direction the filter accepted becomes a graph direction factor
@@ -94,6 +98,7 @@ class VpSlamConfig:
     build_map: bool = True
     vo_scale: float = 1.0
     keyframes: bool = False
+    vp_min_motion: tuple[float, float] = (0.0, 0.0)
     keyframe_translation: float = 0.03
     keyframe_rotation_deg: float = 3.0
     estimator: str = "vp_ekf"
@@ -113,6 +118,10 @@ class VpSlamConfig:
             raise OctofactorError("the seed detector gives one VP: use vp_model='point'")
         if self.vp_model != "none" and self.ekf.vp_model != self.vp_model:
             object.__setattr__(self, "ekf", replace(self.ekf, vp_model=self.vp_model))
+        deg, m = self.vp_min_motion
+        if not (0 <= deg <= 180 and 0 <= m <= 100):  # also refuses NaN
+            raise OctofactorError(f"vp_min_motion must be (0-180 degrees, 0-100 m), got "
+                                  f"{self.vp_min_motion!r}")
         if not 0.1 <= self.vo_scale <= 1.0:
             raise OctofactorError(f"vo_scale must be in [0.1, 1], got {self.vo_scale}")
 
@@ -206,6 +215,7 @@ class VpSlam:
         self._accepted = []        # this frame's accepted directions (VpUpdate), for the graph
         self._axes_world = {}      # "fixed" direction factors: axis -> world direction
         self._prior = None         # the first node's prior factor (moved when levelling)
+        self._vp_pose = None       # the filter's pose at the last frame with directions
         s_rot, s_trans = config.ekf.vo_failure_sigma
         self._failure_cov = np.diag([s_rot ** 2] * 3 + [s_trans ** 2] * 3)
 
@@ -237,7 +247,11 @@ class VpSlam:
         self._reused_ms = 0.0
 
         t1 = time.perf_counter()
-        outcomes, n_detected = self._directions(frame, notes)
+        if self._view_changed():
+            outcomes, n_detected = self._directions(frame, notes)
+        else:
+            outcomes, n_detected = [], 0
+            self.counts["vp_same_view"] += 1
         self._accepted = [o for o in outcomes
                           if o.status == "updated" and o.direction_sensor is not None]
         self._maybe_level_world()
@@ -365,6 +379,20 @@ class VpSlam:
         self._partner = self._prev
         self.counts["keyframes"] += 1
 
+    def _view_changed(self) -> bool:
+        """True when the camera moved enough since the last frame whose directions were
+        measured (config.vp_min_motion) for a new, mostly independent measurement."""
+        min_deg, min_m = self.config.vp_min_motion
+        last = self._vp_pose
+        T = self.filter.T_world_camera
+        if last is not None and (min_deg > 0 or min_m > 0):
+            xi = last.localCoordinates(T)
+            if (np.degrees(np.linalg.norm(xi[:3])) < min_deg
+                    and np.linalg.norm(xi[3:]) < min_m):
+                return False
+        self._vp_pose = T
+        return True
+
     def _directions(self, frame, notes) -> tuple[list, int]:
         """Detect the structure's directions and update the filter; (outcomes, detected)."""
         cfg = self.config
@@ -436,6 +464,7 @@ class VpSlam:
         origin = self.filter.T_world_camera.translation()
         A = gtsam.Pose3(gtsam.Rot3(R_new_old), -(R_new_old @ origin))
         self.filter.reanchor(A)
+        self._vp_pose = None
         for node in self.graph.nodes.values():  # frames before the structure was found
             node.pose = A.compose(node.pose)
         if self._prior is not None:  # the first node's prior moves with it
@@ -746,6 +775,7 @@ def _report(config, slam, results, skipped_frames, skipped_list, notes_count, ti
         "vp_updates": int(slam.counts["vp_updated"]),
         "vp_gated": int(slam.counts["vp_gated"]),
         "vp_initialised": int(slam.counts["vp_initialised"]),
+        "vp_same_view": int(slam.counts["vp_same_view"]),
         "skipped_frames": dict(sorted(skipped_frames.items())),
         "skipped_frame_list": skipped_list,
         "skipped_updates": dict(sorted(notes_count.items())),

@@ -51,6 +51,10 @@ def register(add_command) -> None:
     parser.add_argument("--keyframes", action="store_true", default=None,
                         help="odometry against keyframes (cloned in the filter) instead of "
                              "frame to frame (docs/vp_ekf.md)")
+    parser.add_argument("--vp-min-motion", metavar="DEG,M", default=None,
+                        type=lambda text: tuple(float(v) for v in text.split(",")),
+                        help="measure directions only on frames that turned DEG or moved M "
+                             "since the last one measured (default 0,0: every frame)")
     parser.add_argument("--direction-factors", choices=("predicted", "fixed", "none"),
                         default=None,
                         help="graph.g2o gets a direction factor per direction the filter "
@@ -165,7 +169,8 @@ def build_config(args):
     for dest, field in (("resolution", "map_resolution"), ("max_range", "max_range"),
                         ("vo_scale", "vo_scale"), ("estimator", "estimator"),
                         ("world_frame", "world_frame"), ("detector", "detector"),
-                        ("keyframes", "keyframes"), ("direction_factors", "direction_factors")):
+                        ("keyframes", "keyframes"), ("direction_factors", "direction_factors"),
+                        ("vp_min_motion", "vp_min_motion")):
         if getattr(args, dest) is not None:
             changes[field] = getattr(args, dest)
     if args.no_map:

@@ -129,3 +129,14 @@ def test_directions_improve_rotation_and_translation_on_tum(tum_runs):
     assert default["ate_aligned_rmse_m"] < 0.95 * motion["ate_aligned_rmse_m"]
     # VO alone is consistent on this sequence; the filter's NEES is reported, not hidden
     assert no_vp["pose_nees_mean"] is not None and no_vp["pose_nees_mean"] < 12
+
+
+def test_directions_only_on_changed_views(tmp_path):
+    """--vp-min-motion: frames that hardly moved since the last measured one are not
+    measured again (counted as vp_same_view); the directions still cut the rotation drift."""
+    report = _run(ICL, tmp_path / "gated", "--vp-min-motion", "2,0.02")
+    assert report["vp_same_view"] > 10
+    assert report["vp_updates"] > 0
+    assert report["config"]["vp_min_motion"] == [2.0, 0.02]
+    no_vp = _run(ICL, tmp_path / "no_vp", "--no-vp")
+    assert report["rot_err_mean_deg"] < no_vp["rot_err_mean_deg"]
