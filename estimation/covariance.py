@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from .errors import EstimationError
+
 
 def nees(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     """Normalised estimation error squared e^T P^-1 e for each row of ``errors``.
@@ -19,7 +21,15 @@ def nees(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     """
     errors = np.asarray(errors, dtype=float)
     covariances = np.asarray(covariances, dtype=float)
-    solved = np.linalg.solve(covariances, errors[..., None])[..., 0]
+    n = errors.shape[-1] if errors.ndim else 0
+    if errors.ndim == 0 or covariances.shape[-2:] != (n, n) or \
+            covariances.shape[:-2] != errors.shape[:-1]:
+        raise EstimationError(f"errors (..., n) and covariances (..., n, n) do not match: "
+                              f"shapes {errors.shape} and {covariances.shape}")
+    try:
+        solved = np.linalg.solve(covariances, errors[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        raise EstimationError("a covariance is singular (NEES undefined)") from None
     return np.einsum("...i,...i->...", errors, solved)
 
 

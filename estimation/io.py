@@ -15,7 +15,9 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import struct
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,7 +25,13 @@ import gtsam
 import numpy as np
 
 from .errors import EstimationError, FormatError, OctofactorError
-from .fileio import BinaryReader, atomic_write
+from .fileio import (
+    BinaryReader,
+    atomic_write,
+    check_input_file,
+    library_path,
+    read_input_bytes,
+)
 from .pose_graph import PoseGraph, Scan, as_covariance, direction_tangent_covariance, node_key
 
 PathLike = str | os.PathLike
@@ -57,6 +65,9 @@ def _parse_float_line(path: PathLike, line_no: int, tokens: list[str], count: in
 
 
 def _check_quaternion(path: PathLike, line_no: int, q: np.ndarray) -> None:
+    if np.max(np.abs(q)) > 2.0:  # far from unit norm (and its norm could overflow)
+        raise FormatError(path, "quaternion is not of unit norm (a component beyond 2)",
+                          line=line_no)
     norm = float(np.linalg.norm(q))
     if abs(norm - 1.0) > 1e-3:
         raise FormatError(path, f"quaternion norm is {norm:.6g}, not 1", line=line_no)
@@ -71,6 +82,7 @@ def read_tum_arrays(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
     of unit norm, else a :class:`FormatError` names the file and line.
     """
     rows = []
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for line_no, line in enumerate(handle, 1):
             tokens = line.split("#", 1)[0].replace(",", " ").split()
@@ -79,6 +91,7 @@ def read_tum_arrays(path: PathLike) -> tuple[np.ndarray, np.ndarray]:
             values = _parse_float_line(path, line_no, tokens, 8,
                                        "TUM pose line 't tx ty tz qx qy qz qw'")
             _check_quaternion(path, line_no, values[4:8])
+            _check_translation(path, line_no, values[1:4], "TUM pose")
             rows.append(values)
     data = np.asarray(rows, dtype=np.float64).reshape(-1, 8)
     return data[:, 0].copy(), data[:, 1:].copy()
@@ -122,45 +135,97 @@ def write_tum(path: PathLike, graph: PoseGraph) -> None:
 
 # ---------------------------------------------------------------- g2o
 _G2O_TOKENS = {"VERTEX_SE3:QUAT": 9, "EDGE_SE3:QUAT": 31, "FIX": None}
+_G2O_TAG = re.compile(r"[A-Z][A-Z0-9_]*(:[A-Z0-9_]+)?")
+_CONTROL = re.compile(r"[\x00-\x08\x0e-\x1f\x7f]")  # binary garbage in a text line
+#: largest |coordinate| (m) a pose-graph file may hold: beyond it float64 costs overflow
+MAX_COORDINATE = 1e9
+#: GTSAM keys at or above 2**56 carry a symbol character in their top byte
+MAX_NODE_ID = (1 << 56) - 1
+#: edge information eigenvalues must lie in [1/MAX_SIGMA**2, 1/MIN_SIGMA**2]
+MIN_SIGMA, MAX_SIGMA = 1e-10, 1e10
+
+
+def _check_translation(path: PathLike, line_no: int, t: np.ndarray, what: str) -> None:
+    if np.max(np.abs(t)) > MAX_COORDINATE:
+        raise FormatError(path, f"{what}: translation beyond {MAX_COORDINATE:g} m",
+                          line=line_no)
+
+
+def _node_id(path: PathLike, line_no: int, token: str) -> int:
+    if not token.isdigit() or not token.isascii():
+        raise FormatError(path, f"bad vertex id {token!r} (a non-negative integer)",
+                          line=line_no)
+    node_id = int(token)
+    if node_id > MAX_NODE_ID:
+        raise FormatError(path, f"vertex id {token} is beyond 2^56 - 1 (GTSAM's key range)",
+                          line=line_no)
+    return node_id
+
+
+def _check_information(path: PathLike, line_no: int, info: np.ndarray) -> None:
+    eig = np.linalg.eigvalsh(info)
+    if not eig[0] > 0:
+        raise FormatError(path, "edge information matrix is not positive definite",
+                          line=line_no)
+    if eig[0] < MAX_SIGMA ** -2 or eig[-1] > MIN_SIGMA ** -2:
+        raise FormatError(path, f"edge information eigenvalues {eig[0]:.3g}..{eig[-1]:.3g} "
+                          f"outside [{MAX_SIGMA ** -2:g}, {MIN_SIGMA ** -2:g}] (sigmas between "
+                          f"{MIN_SIGMA:g} and {MAX_SIGMA:g})", line=line_no)
 
 
 def _validate_g2o(path: PathLike) -> None:
     """Check every line GTSAM will read, so errors name the line (GTSAM's do not)."""
     seen_vertex = set()
     count = 0
-    with open(path, encoding="utf-8", errors="replace") as handle:
-        for line_no, line in enumerate(handle, 1):
+    check_input_file(path)
+    with open(path, "rb") as handle:
+        for line_no, raw in enumerate(handle, 1):
+            try:
+                line = raw.decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise FormatError(path, f"not UTF-8 text (byte {exc.start} of the line)",
+                                  line=line_no) from None
             tokens = line.split()
             if not tokens or tokens[0].startswith("#"):
                 continue
             tag = tokens[0]
+            if not _G2O_TAG.fullmatch(tag) or _CONTROL.search(line):
+                raise FormatError(path, f"not a g2o line (tag {tag[:20]!r})", line=line_no)
             if tag in ("VERTEX_SE2", "EDGE_SE2"):
                 raise FormatError(path, f"{tag} is a 2-D element; octofactor reads 3-D g2o files",
                                   line=line_no)
             if tag not in _G2O_TOKENS:
-                continue  # GTSAM skips unknown tags too
+                continue  # another g2o element (GTSAM skips it too)
             expected = _G2O_TOKENS[tag]
-            if expected is None:
+            if expected is None:  # FIX id...: the ids must be vertices defined before
+                for token in tokens[1:]:
+                    if _node_id(path, line_no, token) not in seen_vertex:
+                        raise FormatError(path, f"FIX refers to vertex {token} not defined "
+                                          "before it", line=line_no)
                 continue
-            values = _parse_float_line(path, line_no, tokens[1:], expected - 1, tag)
             if tag == "VERTEX_SE3:QUAT":
+                node_id = _node_id(path, line_no, tokens[1]) if len(tokens) > 1 else None
+                values = _parse_float_line(path, line_no, tokens[1:], expected - 1, tag)
+                _check_translation(path, line_no, values[1:4], tag)
                 _check_quaternion(path, line_no, values[4:8])
-                if values[0] < 0 or values[0] != int(values[0]):
-                    raise FormatError(path, f"bad vertex id {tokens[1]}", line=line_no)
-                seen_vertex.add(int(values[0]))
+                if node_id in seen_vertex:
+                    raise FormatError(path, f"vertex {node_id} defined twice", line=line_no)
+                seen_vertex.add(node_id)
             else:
+                ids = [_node_id(path, line_no, t) for t in tokens[1:3]]
+                values = _parse_float_line(path, line_no, tokens[1:], expected - 1, tag)
+                _check_translation(path, line_no, values[2:5], tag)
                 _check_quaternion(path, line_no, values[5:9])
+                if ids[0] == ids[1]:
+                    raise FormatError(path, f"edge from vertex {ids[0]} to itself (a self-loop)",
+                                      line=line_no)
                 info = np.zeros((6, 6))
                 info[np.triu_indices(6)] = values[9:]
                 info = info + np.triu(info, 1).T
-                try:
-                    np.linalg.cholesky(info)
-                except np.linalg.LinAlgError:
-                    raise FormatError(path, "edge information matrix is not positive definite",
-                                      line=line_no) from None
-                for vertex in values[:2]:
-                    if int(vertex) not in seen_vertex:
-                        raise FormatError(path, f"edge refers to vertex {int(vertex)} "
+                _check_information(path, line_no, info)
+                for vertex in ids:
+                    if vertex not in seen_vertex:
+                        raise FormatError(path, f"edge refers to vertex {vertex} "
                                           "not defined before it", line=line_no)
             count += 1
     if count == 0:
@@ -182,7 +247,7 @@ def read_g2o(path: PathLike) -> PoseGraph:
     path = Path(path)
     _validate_g2o(path)
     try:
-        factor_graph, initial = gtsam.readG2o(str(path), True)
+        factor_graph, initial = gtsam.readG2o(library_path(path, "GTSAM"), True)
     except RuntimeError as exc:
         raise FormatError(path, f"GTSAM could not read it: {exc}") from None
     graph = PoseGraph()
@@ -371,12 +436,15 @@ def _sidecar_list(sidecar: Path, document: dict, key: str) -> list:
 def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
     """Validate the sidecar against ``graph`` (read from its g2o file) and apply it."""
     try:
-        document = json.loads(sidecar.read_text(encoding="utf-8"),
+        document = json.loads(read_input_bytes(sidecar).decode("utf-8"),
                               parse_constant=_reject_constant)
     except json.JSONDecodeError as exc:
         raise FormatError(sidecar, f"not valid JSON: {exc.msg}", line=exc.lineno) from None
     except (ValueError, UnicodeDecodeError) as exc:
         raise FormatError(sidecar, f"not valid JSON: {exc}") from None
+    except RecursionError:
+        raise FormatError(sidecar, "not an octofactor g2o sidecar (JSON nested too deeply)") \
+            from None
     if not isinstance(document, dict) or document.get("format") != G2O_SIDECAR_FORMAT:
         raise FormatError(sidecar, f"not an octofactor g2o sidecar (no \"format\": "
                           f"\"{G2O_SIDECAR_FORMAT}\")")
@@ -522,10 +590,14 @@ def _pose6d_for(pose: gtsam.Pose3, cached: _Pose6D | None) -> _Pose6D:
 def _read_pose6d(reader: BinaryReader, what: str) -> _Pose6D:
     start = reader.pos
     values = reader.unpack("iddd" "idddd", what)
-    t = np.array(values[1:4], dtype=np.float32)
-    q = np.array(values[5:9], dtype=np.float32)
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(q))):
+    t64, q64 = np.array(values[1:4]), np.array(values[5:9])
+    if not (np.all(np.isfinite(t64)) and np.all(np.isfinite(q64))):
         raise reader.error(f"{what} has NaN or inf values", offset=start)
+    if np.max(np.abs(t64)) > MAX_COORDINATE:
+        raise reader.error(f"{what} translation is beyond {MAX_COORDINATE:g} m", offset=start)
+    if np.max(np.abs(q64)) > 2.0:
+        raise reader.error(f"{what} quaternion is not of unit norm", offset=start)
+    t, q = t64.astype(np.float32), q64.astype(np.float32)
     norm = float(np.linalg.norm(q.astype(float)))
     if abs(norm - 1.0) > 1e-3:
         raise reader.error(f"{what} quaternion norm is {norm:.6g}, not 1", offset=start)
@@ -539,7 +611,7 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
     ``odometry`` between factors whose covariance is the identity divided by the edge
     weight (the format carries no covariance; the weight is kept in the record's metadata).
     """
-    data = Path(path).read_bytes()
+    data = read_input_bytes(path)
     reader = BinaryReader(data, path)
     (n_nodes,) = reader.unpack("I", "node count")
     # The smallest node is 4 + 64 + 4 bytes: a lying count fails here, before allocation.
@@ -550,11 +622,13 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
         (n_points,) = reader.unpack("I", f"point count of node #{index}")
         chunk = reader.take(n_points * _POINT.size, f"{n_points} points of node #{index}")
         raw = np.frombuffer(chunk, dtype=_POINT_DTYPE)
+        # NaN fails the comparison too; checked in float64, before the float32 cast overflows
+        in_range = np.all(np.abs(raw["xyz"]) <= MAX_COORDINATE, axis=1)
+        if not np.all(in_range):
+            bad = int(np.flatnonzero(~in_range)[0])
+            raise reader.error(f"node #{index} point {bad} is NaN, inf or beyond "
+                               f"{MAX_COORDINATE:g} m", offset=node_start + 4 + bad * _POINT.size)
         points = raw["xyz"].astype(np.float32)
-        if not np.all(np.isfinite(points)):
-            bad = int(np.flatnonzero(~np.all(np.isfinite(points), axis=1))[0])
-            raise reader.error(f"node #{index} point {bad} is NaN or inf",
-                               offset=node_start + 4 + bad * _POINT.size)
         pose6d = _read_pose6d(reader, f"pose of node #{index}")
         (node_id,) = reader.unpack("I", f"id of node #{index}")
         if node_id in graph.nodes:
@@ -571,8 +645,12 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
         if first not in graph.nodes or second not in graph.nodes:
             raise reader.error(f"edge #{index} refers to unknown node {first} or {second}",
                                offset=edge_start)
-        if not (math.isfinite(weight) and weight > 0):
-            raise reader.error(f"edge #{index} weight {weight} is not positive",
+        if first == second:
+            raise reader.error(f"edge #{index} goes from node {first} to itself (a self-loop)",
+                               offset=edge_start)
+        if not MAX_SIGMA ** -2 <= weight <= MIN_SIGMA ** -2:  # NaN fails too
+            raise reader.error(f"edge #{index} weight {weight} is outside "
+                               f"[{MAX_SIGMA ** -2:g}, {MIN_SIGMA ** -2:g}]",
                                offset=reader.pos - 8)
         record = graph.add_between(first, second, constraint.to_pose3(), np.eye(6) / weight)
         record.metadata.update({GRAPH_POSE_KEY: constraint, "weight": weight})
@@ -590,6 +668,10 @@ def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
     and covariances are dropped.
     """
     dropped: dict[str, None] = {}  # insertion-ordered set
+    too_big = [node_id for node_id in graph.nodes if not 0 <= node_id < 1 << 32]
+    if too_big:
+        raise OctofactorError(f"{path}: node id {too_big[0]} does not fit the .graph format's "
+                              "uint32 ids (0 .. 2^32 - 1)")
     parts: list[bytes] = [struct.pack("<I", len(graph.nodes))]
     for node_id in graph.sorted_ids():
         node = graph.nodes[node_id]
@@ -644,8 +726,10 @@ def format_of(path: PathLike) -> str:
 def read_pose_graph(path: PathLike) -> PoseGraph:
     """Read any supported pose-graph file, chosen by its extension."""
     kind = format_of(path)
-    if not Path(path).is_file():
-        raise OctofactorError(f"{path}: no such file")
+    try:
+        check_input_file(path)
+    except FileNotFoundError:
+        raise OctofactorError(f"{path}: no such file") from None
     if kind == "tum":
         from .trajectory_io import detect_trajectory_format
 
@@ -723,21 +807,34 @@ def load_node_clouds(graph: PoseGraph, directory: PathLike) -> int:
 
 def _read_cloud(path: Path) -> np.ndarray:
     if path.suffix == ".xyz":
+        check_input_file(path)
         try:
-            points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
-        except ValueError as exc:
-            raise FormatError(path, f"not an 'x y z' point file: {exc}") from None
-        if points.size and points.shape[1] != 3:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # "no data": an error below
+                points = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#",
+                                    encoding="utf-8")
+        except (ValueError, UnicodeDecodeError) as exc:
+            reason = " ".join(str(exc).split())[:200]
+            raise FormatError(path, f"not an 'x y z' point file: {reason}") from None
+        if points.size == 0:
+            raise FormatError(path, "no points (empty or only comments)")
+        if points.shape[1] != 3:
             raise FormatError(path, f"expected 3 columns, found {points.shape[1]}")
         points = points.reshape(-1, 3)
     else:
-        import open3d as o3d  # heavy: only when PLY/PCD clouds are asked for
+        from .ply import check_pcd, check_ply, read_ply_quietly  # Open3D: only PLY/PCD
 
-        points = np.asarray(o3d.io.read_point_cloud(str(path)).points)
+        if path.suffix == ".ply":
+            check_ply(path)
+        else:
+            check_pcd(path)
+        points = np.asarray(read_ply_quietly(path, legacy=True).points)
         if len(points) == 0:
             raise FormatError(path, "no points read (unreadable or empty cloud)")
-    if not np.all(np.isfinite(points)):
-        raise FormatError(path, "cloud has NaN or inf coordinates")
+    in_range = np.all(np.abs(points) <= MAX_COORDINATE, axis=1)  # NaN fails too
+    if not np.all(in_range):
+        raise FormatError(path, f"point {int(np.argmin(in_range))} is NaN, inf or beyond "
+                          f"{MAX_COORDINATE:g} m")
     return points.astype(np.float32)
 
 

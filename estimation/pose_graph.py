@@ -291,8 +291,9 @@ class PoseGraph:
                  cov: np.ndarray | None = None, **metadata: Any) -> Node:
         """Add node ``node_id`` at pose ``T_world_sensor`` (Pose3 or 4x4) and return it."""
         node_id = int(node_id)
-        if node_id < 0:
-            raise EstimationError(f"node id must be >= 0, got {node_id}")
+        if not 0 <= node_id < 1 << 56:
+            raise EstimationError(f"node_id must be in 0 .. 2^56 - 1 (GTSAM's key range), got "
+                                  f"{node_id}")
         if node_id in self.nodes:
             raise EstimationError(f"node {node_id} already exists")
         pose = as_pose3(T_world_sensor, f"T_world_sensor of node {node_id}")
@@ -336,6 +337,9 @@ class PoseGraph:
         m-estimator (e.g. ``gtsam.noiseModel.mEstimator.Cauchy.Create(1.0)``).
         """
         self._require(i, j)
+        if i == j:
+            raise EstimationError(f"a between factor needs two nodes, got {i} -> {j} (a "
+                                  "self-loop)")
         if kind not in FACTOR_KINDS:
             raise EstimationError(f"unknown factor kind {kind!r}; one of {FACTOR_KINDS}")
         T_i_j = as_pose3(T_i_j, f"T_i_j of the between factor {i}->{j}")
@@ -583,6 +587,9 @@ class PoseGraph:
         tree. Without a Pose3 prior it includes the weak gauge anchor (``GAUGE_SIGMA``).
         """
         self._require_node(node_id)
+        if not any(node_id in record.nodes for record in self.factors):
+            raise EstimationError(f"node {node_id} has no factor: its marginal covariance is "
+                                  "undefined")
         try:
             if self._isam_is_current():
                 return np.array(self._isam.marginalCovariance(node_key(node_id)))

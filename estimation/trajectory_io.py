@@ -17,8 +17,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .errors import FormatError, OctofactorError
-from .fileio import atomic_write
-from .io import _parse_float_line, read_tum_arrays
+from .fileio import atomic_write, check_input_file
+from .io import _check_translation, _parse_float_line, read_tum_arrays
 
 PathLike = str | os.PathLike
 
@@ -75,6 +75,7 @@ def read_kitti_arrays(path: PathLike) -> np.ndarray:
     :class:`FormatError` naming ``file:line``.
     """
     rows = []
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for line_no, line in enumerate(handle, 1):
             tokens = line.split("#", 1)[0].split()
@@ -83,6 +84,10 @@ def read_kitti_arrays(path: PathLike) -> np.ndarray:
             values = _parse_float_line(path, line_no, tokens, 12,
                                        "KITTI pose line (row-major 3x4 [R | t])")
             R = values.reshape(3, 4)[:, :3]
+            if np.max(np.abs(R)) > 1.0 + ORTHONORMAL_TOL:
+                raise FormatError(path, "rotation is not orthonormal (an entry beyond 1)",
+                                  line=line_no)
+            _check_translation(path, line_no, values.reshape(3, 4)[:, 3], "KITTI pose")
             deviation = float(np.max(np.abs(R @ R.T - np.eye(3))))
             if deviation > ORTHONORMAL_TOL:
                 raise FormatError(path, f"rotation is not orthonormal (|R R^T - I| = "
@@ -127,6 +132,7 @@ def write_tum_arrays(path: PathLike, timestamps: np.ndarray, poses_tum: np.ndarr
 # ---------------------------------------------------------------- any format
 def detect_trajectory_format(path: PathLike) -> str:
     """``'kitti'`` when the first data line has 12 numbers, ``'tum'`` when it has 8."""
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for line_no, line in enumerate(handle, 1):
             tokens = line.split("#", 1)[0].replace(",", " ").split()

@@ -363,6 +363,24 @@ def direction_covariance(K: np.ndarray, uv=None, cov_uv=None, direction_cov=None
     return sigma ** 2 * np.eye(3)
 
 
+def checked_camera_matrix(K, what: str = "K") -> np.ndarray:
+    """K as a (3, 3) float array; EstimationError naming ``what`` unless it is a finite pinhole
+    matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0."""
+    try:
+        K = np.array(K, dtype=float)
+    except (TypeError, ValueError):
+        raise EstimationError(f"{what} must be a 3x3 camera matrix of numbers") from None
+    if K.shape != (3, 3):
+        raise EstimationError(f"{what} must be a 3x3 camera matrix, got shape {K.shape}")
+    if not np.all(np.isfinite(K)):
+        raise EstimationError(f"{what} has NaN or inf entries")
+    if not (K[0, 0] > 0 and K[1, 1] > 0) or not np.allclose(K[2], [0.0, 0.0, 1.0]):
+        raise EstimationError(f"{what} must have fx = K[0, 0] > 0, fy = K[1, 1] > 0 and last row "
+                              f"[0, 0, 1], got fx={K[0, 0]}, fy={K[1, 1]}, last row "
+                              f"{K[2].tolist()}")
+    return K
+
+
 def checked_covariance(P: np.ndarray, what: str, semidefinite: bool = False) -> np.ndarray:
     """P symmetrised; EstimationError when it is not finite or not positive definite
     (``semidefinite``: not positive semi-definite, up to round-off; a state with a cloned
@@ -436,7 +454,7 @@ class VanishingPointEKF(ExtendedKalmanFilter):
                  config: VpEkfConfig = VpEkfConfig()):
         super().__init__(dim_x=STATE_DIM, dim_z=2)
         self.config = config
-        self.K_cam = np.asarray(K, dtype=float).reshape(3, 3)
+        self.K_cam = checked_camera_matrix(K)
         if T_world_camera is None:
             # The paper's convention: the body frame at the world origin (world x forward,
             # z up), i.e. the camera looks along world x. (An identity CAMERA pose would put
@@ -453,6 +471,9 @@ class VanishingPointEKF(ExtendedKalmanFilter):
         self.x = x.reshape(-1, 1)
         cov_pose = np.diag([1e-8] * 3 + [1e-8] * 3) if cov_pose is None else np.asarray(
             cov_pose, dtype=float)
+        if cov_pose.shape != (6, 6) or not np.all(np.isfinite(cov_pose)):
+            raise EstimationError(f"cov_pose must be a finite 6x6 matrix, got shape "
+                                  f"{cov_pose.shape}")
         J = state_from_tangent_jacobian(x)
         P = np.zeros((STATE_DIM, STATE_DIM))
         P[POSE, POSE] = J @ cov_pose @ J.T

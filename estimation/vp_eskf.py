@@ -52,6 +52,7 @@ from .vp_ekf import (
     VpEkfConfig,
     VpUpdate,
     associate_axis,
+    checked_camera_matrix,
     checked_covariance,
     direction_covariance,
     frame_from_two_directions,
@@ -133,7 +134,7 @@ class VanishingPointESKF(ExtendedKalmanFilter):
 
         super().__init__(dim_x=STATE_DIM, dim_z=2)
         self.config = config
-        self.K_cam = np.asarray(K, dtype=float).reshape(3, 3)
+        self.K_cam = checked_camera_matrix(K)
         self.T_world_camera = (gtsam.Pose3() if T_world_camera is None
                                else as_pose3(T_world_camera))
         cov_pose = np.diag([1e-8] * 6) if cov_pose is None else np.asarray(cov_pose, float)

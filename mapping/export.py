@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from estimation.fileio import atomic_write
+from estimation.errors import OctofactorError
+from estimation.fileio import atomic_path, atomic_write, library_path
 
 #: colours for class labels (tab20-like, uint8); label -1 (none) is grey
 PALETTE = np.array([
@@ -45,6 +45,12 @@ def write_ply(tree, path: str | os.PathLike, binary: bool = True) -> int:
     tensor writer accepts only these dtypes (int64/uint32 are rejected).
     """
     occ = tree.occupied_voxels()
+    for name, values in (("voxel centres", occ.centers.astype(np.float32)),
+                         ("voxel sizes", occ.sizes.astype(np.float32)),
+                         ("log-odds", occ.log_odds)):
+        if not np.all(np.isfinite(values)):
+            raise OctofactorError(f"{path}: cannot export: {name} are NaN or inf in float32 "
+                                  "(resolution or log-odds out of range)")
     if len(occ) == 0:
         # Open3D refuses to write an empty cloud: write the same header with 0 vertices
         props = ["float x", "float y", "float z", "uchar red", "uchar green", "uchar blue"]
@@ -72,20 +78,12 @@ def write_ply(tree, path: str | os.PathLike, binary: bool = True) -> int:
         pcd.point.label = o3d.core.Tensor(labels.reshape(-1, 1))
     pcd.point.log_odds = o3d.core.Tensor(occ.log_odds.astype(np.float32).reshape(-1, 1))
     pcd.point.size = o3d.core.Tensor(occ.sizes.astype(np.float32).reshape(-1, 1))
-    path = Path(path)
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(suffix=".ply", dir=directory)
-    os.close(fd)
-    try:
-        if not o3d.t.io.write_point_cloud(tmp, pcd, write_ascii=not binary):
-            from estimation.errors import OctofactorError
-
+    # Open3D writes by file name and picks the format from the suffix: a hidden temporary
+    # .ply beside the destination (estimation.fileio), renamed over it on success
+    library_path(path, "Open3D")  # the temporary file's name contains it
+    with atomic_path(path, suffix=".ply") as tmp:
+        if not o3d.t.io.write_point_cloud(str(tmp), pcd, write_ascii=not binary):
             raise OctofactorError(f"{path}: Open3D could not write the PLY file")
-        data = Path(tmp).read_bytes()
-    finally:
-        os.unlink(tmp)
-    with atomic_write(path, "wb") as fh:
-        fh.write(data)
     return len(occ)
 
 

@@ -12,9 +12,9 @@ import os
 import numpy as np
 
 from estimation.errors import FormatError
-from estimation.fileio import atomic_write
+from estimation.fileio import atomic_write, read_input_bytes
 
-from .octree import OcTree
+from .octree import MAX_RESOLUTION, OcTree
 
 BT_MAGIC = b"# Octomap OcTree binary file"
 OT_MAGIC = b"# Octomap OcTree file"
@@ -23,6 +23,11 @@ MAX_HEADER = 1 << 20
 
 #: .ot ids this module reads, with the bytes of one node's data (the child mask excluded)
 OT_NODE_BYTES = {"OcTree": 4, "OcTreeStamped": 4, "ColorOcTree": 7}
+#: .bt ids this module reads (a .bt holds occupancy only, whatever the tree type)
+BT_IDS = ("OcTree", "OcTreeStamped", "ColorOcTree")
+#: largest resolution read (m): voxel centres and sizes (float32 in liboctomap and in PLY
+#: exports) stay finite up to res * 2**16 < 3.4e38
+MAX_RES = MAX_RESOLUTION
 
 
 def format_res(res: float) -> str:
@@ -143,6 +148,9 @@ def parse_header(data: bytes, path) -> _Header:
                 raise FormatError(path, f"bad res {val!r}", offset=s) from None
             if not (res > 0 and math.isfinite(res)):
                 raise FormatError(path, f"resolution must be positive, got {res}", offset=s)
+            if res > MAX_RES:
+                raise FormatError(path, f"resolution {res:g} m is beyond {MAX_RES:g} m (voxel "
+                                  "coordinates would overflow float32)", offset=s)
         elif tok == b"data":
             e = data.find(b"\n", pos, limit)
             if e < 0:
@@ -166,8 +174,7 @@ def parse_header(data: bytes, path) -> _Header:
 def read_tree(path: str | os.PathLike, data: bytes | None = None) -> OcTree:
     """Read a .bt or .ot file into an :class:`OcTree` (SemanticOcTree for its own id)."""
     if data is None:
-        with open(path, "rb") as fh:
-            data = fh.read()
+        data = read_input_bytes(path)
     hdr = parse_header(data, path)
     if hdr.kind == "bt":
         return _read_bt(data, hdr, path)
@@ -190,8 +197,12 @@ def _make_tree(cls, res: float, n_slots: int, first, cmask, val, nb: int):
 def _read_bt(data: bytes, hdr: _Header, path) -> OcTree:
     from . import _kernels as k
 
+    if hdr.tree_id not in BT_IDS:
+        raise FormatError(path, f"unknown or unsupported tree id {hdr.tree_id!r} in a .bt file "
+                          f"(known: {', '.join(BT_IDS)})", offset=0)
     proto = OcTree(hdr.res)
     if hdr.size == 0:
+        _check_empty_payload(data, hdr, path)
         tree = OcTree(hdr.res)
     else:
         if hdr.size > 8 * (len(data) - hdr.data_start) + 1:
@@ -210,9 +221,33 @@ def _read_bt(data: bytes, hdr: _Header, path) -> OcTree:
         if tree.size() != hdr.size:
             raise FormatError(path, f"tree size mismatch: header says {hdr.size} nodes, the "
                               f"payload holds {tree.size()}", offset=int(end))
+        if int(end) != len(data):
+            raise FormatError(path, f"{len(data) - int(end)} unexpected bytes after the tree",
+                              offset=int(end))
     if hdr.tree_id != "OcTree":
         tree._file_id = hdr.tree_id
     return tree
+
+
+def _check_empty_payload(data: bytes, hdr: _Header, path) -> None:
+    """A header with ``size 0`` must end the file: a payload behind it would be dropped."""
+    if len(data) > hdr.data_start:
+        raise FormatError(path, f"header says size 0 (an empty tree) but "
+                          f"{len(data) - hdr.data_start} payload bytes follow",
+                          offset=hdr.data_start)
+
+
+def check_finite_log_odds(data: bytes, path, data_start: int, node_bytes: int,
+                          n_nodes: int) -> None:
+    """FormatError at the first .ot node (file order) whose float32 log-odds are NaN or inf."""
+    records = np.frombuffer(data, np.uint8, count=n_nodes * node_bytes, offset=data_start)
+    values = np.ascontiguousarray(records.reshape(n_nodes, node_bytes)[:, :4]).view("<f4")
+    values = values.reshape(-1)
+    bad = np.flatnonzero(~np.isfinite(values))
+    if bad.size:
+        index = int(bad[0])
+        raise FormatError(path, f"node #{index} has log-odds {float(values[index])} (NaN or "
+                          "inf)", offset=data_start + index * node_bytes)
 
 
 def _read_ot(data: bytes, hdr: _Header, path) -> OcTree:
@@ -227,6 +262,7 @@ def _read_ot(data: bytes, hdr: _Header, path) -> OcTree:
                           f"{', '.join(OT_NODE_BYTES)}, SemanticOcTree)", offset=0)
     nbytes = OT_NODE_BYTES[hdr.tree_id] + 1
     if hdr.size == 0:
+        _check_empty_payload(data, hdr, path)
         tree = OcTree(hdr.res)
     else:
         if hdr.size * nbytes > len(data) - hdr.data_start:
@@ -243,7 +279,11 @@ def _read_ot(data: bytes, hdr: _Header, path) -> OcTree:
         if n_parsed != hdr.size:
             raise FormatError(path, f"tree size mismatch: header says {hdr.size} nodes, the "
                               f"payload holds {n_parsed}", offset=int(end))
+        if int(end) != len(data):
+            raise FormatError(path, f"{len(data) - int(end)} unexpected bytes after the tree",
+                              offset=int(end))
         val = np.ascontiguousarray(payload[:, :4]).view("<f4").reshape(-1).astype(np.float32)
+        check_finite_log_odds(data, path, hdr.data_start, nbytes, n_parsed)
         tree = _make_tree(OcTree, hdr.res, nb * 8, first, cmask, val, nb)
         if hdr.tree_id == "ColorOcTree":
             tree.color = np.ascontiguousarray(payload[: nb * 8, 4:7])

@@ -17,6 +17,8 @@ import numpy as np
 from estimation.errors import OctofactorError
 
 TREE_DEPTH = 16
+#: largest leaf size (m): coordinates up to resolution * 2**15 must stay finite in float32
+MAX_RESOLUTION = 1e30
 KEY_OFFSET = 32768
 
 
@@ -265,6 +267,19 @@ class OcTree:
         resolution = float(resolution)
         if not resolution > 0 or not math.isfinite(resolution):
             raise OctreeError(f"resolution must be positive, got {resolution}")
+        if resolution > MAX_RESOLUTION:
+            raise OctreeError(f"resolution must be <= {MAX_RESOLUTION:g} m (float32 voxel "
+                              f"coordinates), got {resolution}")
+        for name, p in (("prob_hit", prob_hit), ("prob_miss", prob_miss),
+                        ("clamping_thres_min", clamping_thres_min),
+                        ("clamping_thres_max", clamping_thres_max),
+                        ("occupancy_thres", occupancy_thres)):
+            if not isinstance(p, (int, float, np.floating, np.integer)) or not 0 < p < 1:
+                raise OctreeError(f"{name} must be a probability strictly between 0 and 1, "
+                                  f"got {p!r}")
+        if not clamping_thres_min <= clamping_thres_max:
+            raise OctreeError(f"clamping_thres_min ({clamping_thres_min}) must not exceed "
+                              f"clamping_thres_max ({clamping_thres_max})")
         self.resolution = resolution
         self.prob_hit_log = logodds(prob_hit)
         self.prob_miss_log = logodds(prob_miss)

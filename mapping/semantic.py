@@ -11,7 +11,6 @@ The class posterior is ``softmax(E[v])``. See docs/octree.md for the file format
 from __future__ import annotations
 
 import struct
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -237,6 +236,8 @@ class SemanticOcTree(OcTree):
         payload, first, cmask, nb, end, err = k.ot_decode(buf, hdr.data_start, 5)
         if err >= 0:
             raise FormatError(path, "truncated or corrupt .ot payload", offset=int(err))
+        io.check_finite_log_odds(data, path, hdr.data_start, 5,
+                                 (int(end) - hdr.data_start) // 5)
         pos = int(end)
         if data[pos:pos + 4] != _TRAILER_MAGIC or len(data) < pos + 16:
             raise FormatError(path, "missing semantic section 'SEMV'", offset=pos)
@@ -252,6 +253,14 @@ class SemanticOcTree(OcTree):
         pos += 6 * n_vox
         ev = np.frombuffer(data, "<f4", count=n_vox * n_classes, offset=pos).reshape(
             n_vox, n_classes)
+        bad = np.flatnonzero(~np.isfinite(ev.reshape(-1)))
+        if bad.size:
+            raise FormatError(path, f"class evidence of semantic voxel #{int(bad[0]) // n_classes}"
+                              f" is NaN or inf", offset=pos + 4 * int(bad[0]))
+        if pos + 4 * n_vox * n_classes != len(data):
+            raise FormatError(path, f"{len(data) - pos - 4 * n_vox * n_classes} unexpected bytes "
+                              f"after {n_vox} semantic voxels of {n_classes} classes (a wrong "
+                              "voxel or class count?)", offset=pos + 4 * n_vox * n_classes)
         val = np.ascontiguousarray(payload[:, :4]).view("<f4").reshape(-1).astype(np.float32)
         tree = io._make_tree(cls, hdr.res, nb * 8, first, cmask, val, nb)
         tree.n_classes = int(n_classes)
@@ -265,6 +274,4 @@ class SemanticOcTree(OcTree):
         if tree.size() != hdr.size:
             raise FormatError(path, f"tree size mismatch: header says {hdr.size} nodes, the "
                               f"payload holds {tree.size()}", offset=int(end))
-        if not np.isfinite(tree._sem_ev).all():
-            warnings.warn(f"{path}: non-finite class evidence", RuntimeWarning, stacklevel=2)
         return tree

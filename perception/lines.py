@@ -11,6 +11,11 @@ import numpy as np
 
 from perception.errors import ImageError, PerceptionError
 
+#: smallest image side the line and VP detectors accept (pixels)
+MIN_IMAGE_SIDE = 8
+#: largest image file read (bytes)
+MAX_IMAGE_FILE_BYTES = 256 << 20
+
 
 def read_image(path: str | os.PathLike) -> np.ndarray:
     """Return the image file at ``path`` as an (H, W) uint8 grayscale array.
@@ -23,17 +28,24 @@ def read_image(path: str | os.PathLike) -> np.ndarray:
     """
     import cv2
 
+    from estimation.errors import FormatError
+    from estimation.fileio import read_input_bytes
+
+    from .image_header import decode
+
     try:
-        data = np.fromfile(os.fspath(path), dtype=np.uint8)
+        data = read_input_bytes(path, max_bytes=MAX_IMAGE_FILE_BYTES)
+    except FormatError as exc:
+        raise ImageError(path, exc.reason) from None
     except FileNotFoundError:
         raise ImageError(path, "no such file") from None
     except IsADirectoryError:
         raise ImageError(path, "is a directory, not an image") from None
     except OSError as exc:
         raise ImageError(path, f"cannot read ({exc.strerror})") from None
-    if data.size == 0:
+    if len(data) == 0:
         raise ImageError(path, "empty file")
-    image = cv2.imdecode(data, cv2.IMREAD_GRAYSCALE)
+    image = decode(path, data, cv2.IMREAD_GRAYSCALE, min_side=MIN_IMAGE_SIDE)
     if image is None or image.size == 0:
         raise ImageError(path, "not a decodable image (corrupt or unsupported format)")
     return image
@@ -68,6 +80,9 @@ def to_gray_u8(image: np.ndarray) -> np.ndarray:
         image = np.clip(np.nan_to_num(values), 0, 255).astype(np.uint8)
     if image.ndim == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if min(image.shape) < MIN_IMAGE_SIDE:
+        raise PerceptionError(f"image is {image.shape[1]}x{image.shape[0]} pixels; the detectors "
+                              f"need at least {MIN_IMAGE_SIDE}x{MIN_IMAGE_SIDE}")
     return np.ascontiguousarray(image)
 
 

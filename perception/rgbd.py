@@ -18,10 +18,13 @@ import gtsam
 import numpy as np
 
 from estimation.errors import FormatError
-from estimation.fileio import atomic_write
+from estimation.fileio import atomic_write, check_input_file, read_input_bytes
 from perception.errors import ImageError, PerceptionError
+from perception.image_header import decode
 
 CAMERA_FILE_NAME = "camera.txt"
+#: largest image file read (bytes): a 4K 16-bit PNG is ~25 MB
+MAX_IMAGE_FILE_BYTES = 256 << 20
 _CAMERA_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")
 
 
@@ -49,6 +52,19 @@ class CameraIntrinsics:
     height: int
     depth_scale: float = 5000.0
 
+    def __post_init__(self):
+        for name in ("fx", "fy", "cx", "cy", "depth_scale"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float, np.number)) or not np.isfinite(value):
+                raise PerceptionError(f"{name} must be a finite number, got {value!r}")
+        for name in ("fx", "fy", "depth_scale"):
+            if not getattr(self, name) > 0:
+                raise PerceptionError(f"{name} must be positive, got {getattr(self, name)!r}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < 1:
+                raise PerceptionError(f"{name} must be a positive integer, got {value!r}")
+
     @property
     def K(self) -> np.ndarray:  # noqa: N802 - the usual symbol for the camera matrix
         """The 3x3 camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]."""
@@ -75,6 +91,7 @@ def read_camera_file(path: str | os.PathLike) -> CameraIntrinsics:
     """
     path = Path(path)
     try:
+        check_input_file(path, max_bytes=1 << 20)
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise FormatError(path, "camera file not found") from None
@@ -162,6 +179,7 @@ def read_timestamp_list(path: str | os.PathLike) -> tuple[np.ndarray, list[str]]
         raise FormatError(path, "association file not found")
     stamps: list[float] = []
     names: list[str] = []
+    check_input_file(path)
     with open(path, encoding="utf-8", errors="replace") as handle:
         for number, line in enumerate(handle, start=1):
             fields = line.split("#", 1)[0].split()
@@ -260,10 +278,9 @@ def first_image_size(paths) -> tuple[int, int] | None:
 
     for path in paths:
         try:
-            data = np.frombuffer(_read_bytes(path), dtype=np.uint8)
+            image = decode(path, _read_bytes(path), cv2.IMREAD_UNCHANGED)
         except ImageError:
             continue
-        image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
         if image is not None and image.ndim >= 2:
             return int(image.shape[1]), int(image.shape[0])
     return None
@@ -423,7 +440,7 @@ def read_rgb(path: str | os.PathLike, intr: CameraIntrinsics | None = None) -> n
     import cv2
 
     data = _read_bytes(path)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decode(path, data, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ImageError(path, "cannot decode the colour image (corrupt or not an image)")
     if image.dtype != np.uint8:
@@ -447,7 +464,7 @@ def read_depth(path: str | os.PathLike, intr: CameraIntrinsics) -> np.ndarray:
     import cv2
 
     data = _read_bytes(path)
-    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    image = decode(path, data, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ImageError(path, "cannot decode the depth image (corrupt or not an image)")
     if image.dtype != np.uint16 or image.ndim != 2:
@@ -459,7 +476,9 @@ def read_depth(path: str | os.PathLike, intr: CameraIntrinsics) -> np.ndarray:
 
 def _read_bytes(path: str | os.PathLike) -> bytes:
     try:
-        return Path(path).read_bytes()
+        return read_input_bytes(path, max_bytes=MAX_IMAGE_FILE_BYTES)
+    except FormatError as exc:
+        raise ImageError(path, exc.reason) from None
     except FileNotFoundError:
         raise ImageError(path, "image file not found") from None
     except OSError as exc:

@@ -10,7 +10,6 @@ writer drops multi-column attributes, hence one float32 column per class. A PLY 
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -18,8 +17,12 @@ from pathlib import Path
 import numpy as np
 
 from estimation.errors import FormatError
-from estimation.fileio import atomic_write
+from estimation.fileio import atomic_path, atomic_write, library_path, read_input_bytes
 from perception.errors import PerceptionError
+
+#: most classes a semantic cloud may have (labels in a PLY file are bounded by it before the
+#: one-hot probabilities are allocated)
+MAX_CLASSES = 1024
 
 Segmenter = Callable[[np.ndarray], np.ndarray]  # (H, W, 3) uint8 RGB -> (H, W, C) probabilities
 
@@ -51,8 +54,10 @@ class SemanticCloud:
                 f"probs must be (N, C) with N={len(points)}, got shape {probs.shape}")
         if probs.shape[1] < 1:
             raise PerceptionError("a semantic cloud needs at least one class")
-        if not (np.all(np.isfinite(points)) and np.all(np.isfinite(probs))):
-            raise PerceptionError("semantic cloud has NaN or inf values")
+        finite = np.all(np.isfinite(points), axis=1) & np.all(np.isfinite(probs), axis=1)
+        if not np.all(finite):
+            raise PerceptionError(f"semantic cloud has NaN or inf values (point "
+                                  f"{int(np.argmin(finite))})")
         if np.any(probs < 0):
             raise PerceptionError("class probabilities must be non-negative")
         sums = probs.sum(axis=1, keepdims=True)
@@ -95,6 +100,8 @@ class SemanticCloud:
             raise PerceptionError("labels must be non-negative")
         if n_classes is None:
             n_classes = int(labels.max()) + 1 if len(labels) else 1
+        if not 1 <= n_classes <= MAX_CLASSES:
+            raise PerceptionError(f"n_classes must be 1..{MAX_CLASSES}, got {n_classes}")
         if len(labels) and labels.max() >= n_classes:
             raise PerceptionError(f"label {int(labels.max())} >= n_classes {n_classes}")
         probs = np.zeros((len(labels), n_classes), dtype=np.float32)
@@ -221,14 +228,11 @@ class SemanticCloud:
             pcd.point[f"prob_{c}"] = o3d.core.Tensor(
                 np.ascontiguousarray(self.probs[:, c:c + 1]))
         path = Path(path)
-        # Open3D writes by file name (and picks the format from the suffix): render to a
-        # private temporary .ply, then copy it through atomic_write
-        with tempfile.TemporaryDirectory(dir=path.parent if str(path.parent) else ".") as tmp:
-            tmp_path = os.path.join(tmp, "cloud.ply")
-            if not o3d.t.io.write_point_cloud(tmp_path, pcd, write_ascii=ascii):
+        # Open3D writes by file name and picks the format from the suffix
+        library_path(path, "Open3D")  # the temporary file's name contains it
+        with atomic_path(path, suffix=".ply") as tmp_path:
+            if not o3d.t.io.write_point_cloud(str(tmp_path), pcd, write_ascii=ascii):
                 raise PerceptionError(f"{path}: Open3D could not write the PLY")
-            with open(tmp_path, "rb") as src, atomic_write(path, "wb") as dst:
-                dst.write(src.read())
         if self.class_names is not None:
             with atomic_write(path.with_suffix(".classes.txt"), "w") as handle:
                 handle.write("\n".join(self.class_names) + "\n")
@@ -240,15 +244,19 @@ class SemanticCloud:
         ``n_classes`` widens one-hot probabilities of a label-only file (default: max label
         + 1). Raises :class:`FormatError` for files that are not semantic PLYs.
         """
-        import open3d as o3d
+        from estimation.ply import check_ply, read_ply_quietly
 
         path = Path(path)
-        if not path.is_file():
-            raise FileNotFoundError(2, "No such file", str(path))
-        if path.stat().st_size < 4 or path.read_bytes()[:3] != b"ply":
-            raise FormatError(path, "not a PLY file (no 'ply' magic)", offset=0)
-        pcd = o3d.t.io.read_point_cloud(str(path))
+        header = check_ply(path)
+        vertex = header.element("vertex")
+        if vertex is None or vertex.count == 0 or \
+                not {"x", "y", "z"} <= set(header.vertex_properties):
+            raise FormatError(path, "PLY has no vertices with x, y, z")
+        pcd = read_ply_quietly(path)
         attrs = set(pcd.point)
+        if "positions" in attrs and pcd.point.positions.shape[0] != vertex.count:
+            raise FormatError(path, f"Open3D read {pcd.point.positions.shape[0]} of the "
+                              f"{vertex.count} vertices the header claims")
         if "positions" not in attrs or pcd.point.positions.shape[0] == 0:
             raise FormatError(path, "PLY has no vertices with x, y, z")
         points = pcd.point.positions.numpy().astype(np.float64)
@@ -270,7 +278,12 @@ class SemanticCloud:
         elif "label" in attrs:
             labels = pcd.point.label.numpy().reshape(-1).astype(np.int64)
             if labels.min() < 0:
-                raise FormatError(path, "negative label")
+                raise FormatError(path, f"negative label {int(labels.min())} at vertex "
+                                  f"{int(np.argmin(labels))}")
+            if labels.max() >= MAX_CLASSES:
+                raise FormatError(path, f"label {int(labels.max())} at vertex "
+                                  f"{int(np.argmax(labels))} is beyond the {MAX_CLASSES}-class "
+                                  "limit")
             c = int(labels.max()) + 1 if n_classes is None else int(n_classes)
             if labels.max() >= c:
                 raise FormatError(path, f"label {int(labels.max())} >= n_classes {c}")
@@ -281,7 +294,15 @@ class SemanticCloud:
         names = None
         names_path = path.with_suffix(".classes.txt")
         if names_path.is_file():
-            lines = [ln.strip() for ln in names_path.read_text().splitlines() if ln.strip()]
+            try:
+                text = read_input_bytes(names_path, max_bytes=1 << 20).decode("utf-8")
+            except UnicodeDecodeError as exc:
+                raise FormatError(names_path, "class names are not UTF-8 text",
+                                  offset=exc.start) from None
+            lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
             if len(lines) == probs.shape[1]:
                 names = tuple(lines)
-        return cls(points, probs, colors, names)
+        try:
+            return cls(points, probs, colors, names)
+        except PerceptionError as exc:
+            raise FormatError(path, str(exc)) from None

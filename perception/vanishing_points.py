@@ -193,6 +193,10 @@ def angle_between_directions(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.degrees(np.arccos(np.clip(cos, 0.0, 1.0)))
 
 
+#: largest focal length (pixels) the detectors accept (the vp command's --intrinsics bound)
+MAX_FOCAL_PX = 1e6
+
+
 def _nominal_K(shape: tuple[int, ...]) -> np.ndarray:
     h, w = shape[:2]
     f = float(max(h, w))
@@ -201,6 +205,11 @@ def _nominal_K(shape: tuple[int, ...]) -> np.ndarray:
 
 def _check_K(K: np.ndarray) -> np.ndarray:
     K = np.asarray(K, dtype=np.float64)
+    if K.shape == (3, 3) and np.all(np.isfinite(K)) and \
+            max(abs(K[0, 0]), abs(K[1, 1])) > MAX_FOCAL_PX:
+        # beyond it back-projected directions underflow to (0, 0, 0)
+        raise PerceptionError(f"K: focal lengths must be at most {MAX_FOCAL_PX:g} pixels, got "
+                              f"fx={K[0, 0]:g}, fy={K[1, 1]:g}")
     if K.shape != (3, 3) or not np.all(np.isfinite(K)) or abs(np.linalg.det(K)) < 1e-12:
         raise PerceptionError(f"K must be a finite, invertible 3x3 camera matrix, got {K.tolist()}")
     return K

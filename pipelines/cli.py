@@ -36,8 +36,15 @@ GROUPS = {
 AddCommand = Callable[..., argparse.ArgumentParser]
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line usage errors (``--help`` still shows the usage)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {' '.join(message.split())} (see --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="octofactor",
         description="Probabilistic estimation on factor graphs for robot perception.",
     )
@@ -96,19 +103,14 @@ def _one_line_warnings(python_showwarning):
 
 
 def main(argv: list[str] | None = None) -> int:
-    import warnings
-
     parser = build_parser()
     args = parser.parse_args(argv)
-    with warnings.catch_warnings():  # restores the warning display afterwards (tests)
-        warnings.showwarning = _one_line_warnings(warnings.showwarning)
-        return _run(args)
+    return run_command(_call, args)
 
 
-def _run(args) -> int:
+def _call(args) -> int:
+    """Run ``args.func`` with the global switches applied (--deterministic, --quiet)."""
     import os
-
-    from estimation.errors import OctofactorError
 
     tqdm_disable = os.environ.get("TQDM_DISABLE")
     try:
@@ -123,25 +125,88 @@ def _run(args) -> int:
             with open(os.devnull, "w") as devnull, contextlib.redirect_stdout(devnull):
                 return int(args.func(args) or 0)
         return int(args.func(args) or 0)
-    except OctofactorError as exc:
-        print(f"octofactor: error: {exc}", file=sys.stderr)
-        return 2
-    except (FileNotFoundError, IsADirectoryError, PermissionError, NotADirectoryError) as exc:
-        name = exc.filename if exc.filename is not None else ""
-        print(f"octofactor: error: {name}: {exc.strerror}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("octofactor: interrupted", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # `octofactor plugins | head`: the reader left, not an error
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        return 0
     finally:
         if tqdm_disable is None:
             os.environ.pop("TQDM_DISABLE", None)
         else:
             os.environ["TQDM_DISABLE"] = tqdm_disable
+
+
+def run_command(func: Callable, args: argparse.Namespace) -> int:
+    """Run one command; every error a user can cause becomes one line on stderr and exit 2.
+
+    This is the one place that turns errors into messages: the project's errors
+    (OctofactorError), every OSError (missing, unreadable or unwritable files, names over
+    255 bytes, a full disk), text files that are not UTF-8, and running out of memory.
+    octofactor's own warnings (plug-ins skipped, ...) are one line each as they happen; other
+    warnings (NumPy RuntimeWarnings, ...) are held back and printed, one line each, only when
+    the command succeeds, so an error line is never preceded by them. SIGTERM and SIGHUP are
+    turned into an exception so that temporary files are removed. ``OCTOFACTOR_TRACEBACK=1``
+    re-raises instead (for debugging).
+    """
+    import os
+    import re
+    import signal
+    import warnings
+
+    def on_sigterm(signum, frame):
+        raise SystemExit(128 + signum)
+
+    held: list[str] = []
+    own = _one_line_warnings(lambda message, *rest: held.append(str(message)))
+    with_traceback = os.environ.get("OCTOFACTOR_TRACEBACK") == "1"
+    previous = signal.signal(signal.SIGTERM, on_sigterm)
+    previous_hup = signal.signal(signal.SIGHUP, on_sigterm)  # a closed terminal
+    with warnings.catch_warnings():  # restores the warning display afterwards (tests)
+        warnings.showwarning = own
+        try:
+            status = int(func(args) or 0)
+        except KeyboardInterrupt:
+            print("octofactor: interrupted", file=sys.stderr)
+            return 130
+        except BrokenPipeError:  # `octofactor plugins | head`: the reader left, not an error
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            return 0
+        except Exception as exc:  # noqa: BLE001 - the one place errors become a line
+            if with_traceback:
+                raise
+            print(f"octofactor: error: {error_line(exc)}", file=sys.stderr)
+            return 2
+        finally:
+            signal.signal(signal.SIGTERM, previous)
+            signal.signal(signal.SIGHUP, previous_hup)
+    for message in held:
+        text = re.sub(r"\x1b\[[0-9;]*m", "", " ".join(message.split()))
+        print(f"octofactor: warning: {text}", file=sys.stderr)
+    return status
+
+
+def error_line(exc: BaseException) -> str:
+    """The one-line message of an error: file or option first, no traceback."""
+    import errno
+
+    from estimation.errors import OctofactorError
+
+    if isinstance(exc, OctofactorError):
+        text = str(exc)
+    elif isinstance(exc, OSError):
+        reason = exc.strerror or str(exc) or type(exc).__name__
+        if exc.errno == errno.ENAMETOOLONG:
+            reason = "file name too long"
+        name = exc.filename if exc.filename is not None else ""
+        if exc.filename2 is not None:
+            name = f"{name} -> {exc.filename2}"
+        text = f"{name}: {reason}" if name else reason
+    elif isinstance(exc, UnicodeDecodeError):
+        text = (f"a file is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset "
+                f"{exc.start})")
+    elif isinstance(exc, MemoryError):
+        text = "out of memory (is an input file or option far larger than intended?)"
+    else:
+        # not an error octofactor raises on purpose: still one line, with its type
+        text = f"unexpected {type(exc).__name__}: {exc} (OCTOFACTOR_TRACEBACK=1 shows where)"
+    return " ".join(text.split())  # one line
 
 
 if __name__ == "__main__":

@@ -45,6 +45,10 @@ def run(args) -> int:
     from estimation.evaluation import evaluate_trajectory
     from estimation.fileio import atomic_write
     from estimation.trajectory_io import read_trajectory
+    from pipelines.validate import integer, number
+
+    number("--max-diff", args.max_diff, 0.0, 1e6, low_open=True)
+    integer("--delta", args.delta, 1, 10**9)
 
     for path in (args.gt, args.est):
         if not os.path.isfile(path):

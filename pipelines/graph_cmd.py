@@ -59,7 +59,9 @@ def _report_dropped(dropped: list[str], output: str) -> None:
 
 def run_convert(args) -> int:
     from estimation.io import load_node_clouds, read_pose_graph, write_pose_graph
+    from pipelines.validate import output_file, output_path
 
+    output_file("-o", output_path(args))
     graph = read_pose_graph(args.input)
     if args.clouds:
         attached = load_node_clouds(graph, args.clouds)
@@ -72,6 +74,10 @@ def run_convert(args) -> int:
 def run_optimize(args) -> int:
     from estimation.io import read_pose_graph, write_pose_graph
     from estimation.pose_graph import GAUGE_SIGMA
+    from pipelines.validate import integer, output_file, output_path
+
+    integer("--max-iterations", args.max_iterations, 1, 100000)
+    output_file("-o", output_path(args))
 
     graph = read_pose_graph(args.input)
     if not graph.factors:

@@ -62,10 +62,10 @@ def run_map(args: argparse.Namespace) -> int:
     from estimation.errors import OctofactorError
     from estimation.io import load_node_clouds, read_pose_graph
     from mapping import fuse
+    from pipelines.validate import map_options
 
     _check_ext(args.output, (".bt", ".ot"))
-    if not args.resolution > 0:
-        raise OctofactorError(f"resolution must be positive, got {args.resolution}")
+    map_options(args)
     graph = read_pose_graph(args.graph)
     if args.clouds is not None:
         load_node_clouds(graph, args.clouds)
@@ -111,8 +111,10 @@ def run_convert(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     from mapping import OcTree
     from mapping.export import save_height_slice, write_ply
+    from pipelines.validate import number
 
     ext = _check_ext(args.output, (".ply", ".png"))
+    number("--height", args.height, -1e30, 1e30, allow_none=True)
     tree = OcTree.read(args.file)
     if ext == ".ply":
         n = write_ply(tree, args.output)

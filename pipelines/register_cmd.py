@@ -86,13 +86,17 @@ def _load(path: str, method: str):
     except FormatError as exc:
         if method != "gicp" or "neither" not in str(exc):
             raise
-    # geometry-only PLY: fine for GICP
+    # geometry-only PLY (its header already checked by read_ply): fine for GICP
     import numpy as np
-    import open3d as o3d
 
-    pcd = o3d.t.io.read_point_cloud(str(path))
-    points = pcd.point.positions.numpy().astype(float)
-    return SemanticCloud(points, np.ones((len(points), 1)))
+    from estimation.ply import read_ply_quietly
+    from perception.errors import PerceptionError
+
+    points = read_ply_quietly(path).point.positions.numpy().astype(float)
+    try:
+        return SemanticCloud(points, np.ones((len(points), 1)))
+    except PerceptionError as exc:
+        raise FormatError(path, str(exc)) from None
 
 
 def _register(args, source, target, flip=None) -> dict:
@@ -171,7 +175,9 @@ def registration_config(args):
 
 def _dump(args, command: str) -> bool:
     from pipelines.cli_common import dump_config
+    from pipelines.validate import registration_numbers
 
+    registration_numbers(args)  # named in the error, before RegistrationConfig sees them
     return dump_config(args, registration_config(args), command)
 
 
@@ -213,6 +219,9 @@ def run_register(args) -> int:
     if _dump(args, "register"):
         return 0
     output = _output(args)
+    from pipelines.validate import registration_options
+
+    registration_options(args)  # before the clouds are read
     source = _load(args.source, args.method)
     target = _load(args.target, args.method)
     out, _ = _register(args, source, target)
@@ -242,6 +251,9 @@ def run_calibrate(args) -> int:
         raise OctofactorError(f"missing the {' and the '.join(missing)} cloud: calibrate "
                               "HEADSET MAP (or --headset H --map M)")
     output = _output(args)
+    from pipelines.validate import registration_options
+
+    registration_options(args)  # before the clouds are read
     headset = _load(paths["headset"], args.method)  # source first, as in register
     robot_map = _load(paths["map"], args.method)
     flip = None
@@ -282,7 +294,7 @@ def _surface_radius(text: str) -> float | str | None:
         radius = float(text)
     except ValueError:
         radius = float("nan")
-    if not radius > 0:
+    if not 0 < radius <= 1e6:
         raise OctofactorError(f"--surface-radius must be auto, none or a positive number of "
-                              f"metres, got {text!r}")
+                              f"metres (at most 1e6), got {text!r}")
     return radius

@@ -31,6 +31,9 @@ def run(args) -> int:
                                 "clutter")}))
     if dump_config(args, config, "simulate corridor"):
         return 0
+    from pipelines.validate import corridor_options
+
+    corridor_options(args, config)
     out_dir = output_of(args)
     n_frames = simulate_corridor(out_dir, config, progress=not args.quiet)
     print(f"{n_frames} frames in {out_dir}/")

@@ -36,7 +36,9 @@ def run(args) -> int:
     from estimation.errors import OctofactorError
     from perception.simulation.room import RoomConfig, simulate_room
     from pipelines.cli_common import base_config, changes, dump_config, output_of
+    from pipelines.validate import room_options
 
+    room_options(args)
     config = base_config(args, RoomConfig, None)
     if config is None:  # the CLI's defaults: 320x240, focal 0.75 x width
         config = RoomConfig(image_width=320, image_height=240, focal=240.0)
@@ -50,6 +52,9 @@ def run(args) -> int:
         except ValueError:
             raise OctofactorError(
                 f"--image-size must look like 320x240, got {args.image_size!r}") from None
+        from pipelines.validate import image_size
+
+        width, height = image_size("--image-size", width, height)
         update.update(image_width=width, image_height=height)
         update.setdefault("focal", 0.75 * width)
     config = replace(config, **update)

@@ -48,7 +48,9 @@ def parse_intrinsics(text: str):
     if len(values) != 4 or not all(math.isfinite(v) for v in values) or min(values[:2]) <= 0:
         raise IntrinsicsError(f"--intrinsics: expected four numbers fx,fy,cx,cy with fx, fy > 0, "
                               f"got {text!r}")
-    fx, fy, cx, cy = values
+    from pipelines.validate import intrinsics
+
+    fx, fy, cx, cy = intrinsics("--intrinsics", values)
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
@@ -111,6 +113,9 @@ def run(args: argparse.Namespace) -> int:
 
     K = parse_intrinsics(args.intrinsics)
     if args.output is not None:
+        from pipelines.validate import output_folder
+
+        output_folder("-o", args.output)
         os.makedirs(args.output, exist_ok=True)
     for image_path in args.images:
         gray = read_image(image_path)

@@ -560,6 +560,11 @@ class VpSlamResult:
     positions_gt: np.ndarray
 
 
+#: a run fails (nothing written) when more than this fraction of its frames is unreadable:
+#: the trajectory would then be mostly gaps that the filter bridges on its motion model
+MAX_SKIPPED_FRACTION = 0.5
+
+
 def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), intrinsics=None,
                progress: bool = True, max_frames: int | None = None,
                odometry_cache: dict | None = None, name: str | None = None,
@@ -614,6 +619,12 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
         timings["total"].append((time.perf_counter() - start) * 1e3 + result.ms["vo_reused"])
     if not results:
         raise OctofactorError(f"{seq_dir}: no frame could be read")
+    if len(skipped_list) > MAX_SKIPPED_FRACTION * n_frames:
+        first = skipped_list[0]
+        raise OctofactorError(
+            f"{seq_dir}: {len(skipped_list)} of {n_frames} frames could not be read (more than "
+            f"{MAX_SKIPPED_FRACTION:.0%}; frame {first['index']}: {first['reason']}); nothing "
+            "written")
     tree, map_ms = None, None
     if config.build_map:
         t_map = time.perf_counter()

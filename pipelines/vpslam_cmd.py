@@ -99,7 +99,7 @@ def _intrinsics(text: str) -> tuple[float, float, float, float]:
             or not all(v > 0 for v in values[:2]):
         raise argparse.ArgumentTypeError("expected fx,fy,cx,cy (four finite numbers, fx and "
                                          "fy > 0)")
-    return values
+    return values  # magnitudes: vpslam.check_intrinsics, against the images
 
 
 def run(args) -> int:
@@ -108,8 +108,10 @@ def run(args) -> int:
     from pathlib import Path
 
     from pipelines.cli_common import dump_config, output_of
+    from pipelines.validate import vpslam_options
     from pipelines.vpslam import run_vpslam
 
+    vpslam_options(args)
     intrinsics = None
     if args.intrinsics is not None or args.depth_scale is not None:
         intrinsics = _resolve_intrinsics(Path(args.seq_dir), args.intrinsics, args.depth_scale)

@@ -12,6 +12,7 @@ after the correspondence distance schedule has reached ``max_correspondence_dist
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field, replace
 
@@ -152,8 +153,14 @@ class RegistrationConfig:
     trust_ratio: float = 4.0
 
     def __post_init__(self):
-        if self.max_correspondence_distance <= 0:
-            raise EstimationError("max_correspondence_distance must be positive")
+        for name in ("max_correspondence_distance", "cauchy_alpha"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise EstimationError(f"{name} must be a positive finite number, got {value!r}")
+        if self.initial_correspondence_distance is not None and \
+                not self.initial_correspondence_distance > 0:  # NaN fails too
+            raise EstimationError(f"initial_correspondence_distance must be a positive number "
+                                  f"or None, got {self.initial_correspondence_distance!r}")
         if self.anneal not in ("iteration", "convergence"):
             raise EstimationError(
                 f"anneal must be 'iteration' or 'convergence', got {self.anneal!r}")
@@ -802,6 +809,8 @@ def _row_groups(keys: np.ndarray) -> np.ndarray:
 
 def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndarray:
     """Return ``values`` (M, d) summed over the cubic blocks of edge ``size`` holding ``points``."""
+    if not size > 0:  # identical points: a neighbourhood radius of 0, one block
+        return values.sum(axis=0, keepdims=True)
     block = _row_groups(np.floor(points / size).astype(np.int64))
     out = np.zeros((int(block.max()) + 1, values.shape[1]))
     np.add.at(out, block.reshape(-1), values)

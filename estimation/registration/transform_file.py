@@ -6,13 +6,17 @@ import os
 import numpy as np
 
 from ..errors import FormatError
-from ..fileio import atomic_write
+from ..fileio import atomic_write, check_input_file
 
 
 def read_transform(path: str | os.PathLike) -> np.ndarray:
     """Return the rigid 4x4 matrix stored as text in ``path`` (FormatError when it is not one)."""
-    with open(path) as handle:
-        text = handle.read(1 << 16)
+    check_input_file(path, max_bytes=1 << 16)
+    try:
+        with open(path, encoding="utf-8") as handle:
+            text = handle.read()
+    except UnicodeDecodeError as exc:
+        raise FormatError(path, "not UTF-8 text (a 4x4 matrix file)", offset=exc.start) from None
     rows = [ln.split() for ln in text.splitlines()
             if ln.strip() and not ln.lstrip().startswith("#")]
     if len(rows) != 4 or any(len(r) != 4 for r in rows):
@@ -23,6 +27,10 @@ def read_transform(path: str | os.PathLike) -> np.ndarray:
         raise FormatError(path, f"not a number: {exc}") from None
     if not np.all(np.isfinite(T)):
         raise FormatError(path, "matrix has NaN or inf entries")
+    if np.max(np.abs(T[:3, :3])) > 1.0 + 1e-5:
+        raise FormatError(path, "top-left 3x3 block is not a rotation matrix (an entry beyond 1)")
+    if np.max(np.abs(T[:3, 3])) > 1e9:
+        raise FormatError(path, "translation beyond 1e9 m")
     if not np.allclose(T[3], [0, 0, 0, 1]):
         raise FormatError(path, "last row must be 0 0 0 1", line=4)
     R = T[:3, :3]

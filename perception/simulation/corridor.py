@@ -171,6 +171,9 @@ class CorridorConfig:
 
     def validate(self) -> None:
         """Raise PerceptionError when the corridor or the walk cannot be built."""
+        numbers = [v for v in vars(self).values() if isinstance(v, (int, float))]
+        if not all(np.isfinite(numbers)) or not np.all(np.isfinite(self.disparity_tilt)):
+            raise PerceptionError("corridor parameters must be finite numbers (no NaN or inf)")
         if min(self.length, self.width, self.height, self.speed, self.period) <= 0:
             raise PerceptionError("length, width, height, speed and period must be positive")
         if not 0 < self.camera_height < self.height:

@@ -95,6 +95,12 @@ class RoomConfig:
     def __post_init__(self):
         if not 0.0 <= self.label_accuracy <= 1.0 or not 0.0 <= self.robot_label_accuracy <= 1.0:
             raise PerceptionError("label accuracies must be in [0, 1]")
+        numbers = [v for v in vars(self).values() if isinstance(v, (int, float))]
+        if not all(np.isfinite(numbers)):
+            raise PerceptionError("room parameters must be finite numbers (no NaN or inf)")
+        if not self.focal > 0 or min(self.image_width, self.image_height) < 1:
+            raise PerceptionError(f"focal must be > 0 and the image at least 1x1, got focal "
+                                  f"{self.focal}, {self.image_width}x{self.image_height}")
         if min(self.width, self.depth, self.height) <= 0.5:
             raise PerceptionError("room must be larger than 0.5 m in every direction")
 
