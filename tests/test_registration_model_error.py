@@ -199,8 +199,9 @@ def test_dense_voxel_map_covariance_is_not_overconfident():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known gap: 3 cm point noise, mean NEES ~10.6 "
-                                       "(normal-estimation errors correlated beyond the blocks)")
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="known gap: 3 cm point noise, mean NEES ~10.6 "
+                          "(normal-estimation errors correlated beyond the blocks)")
 def test_sandwich_at_3cm_point_noise_is_consistent():
     errors, covs = [], []
     for seed in range(1000, 1000 + N_TRIALS):
@@ -214,7 +215,8 @@ def test_sandwich_at_3cm_point_noise_is_consistent():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason="known gap: real scan splits, mean NEES ~10.0")
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="known gap: real scan splits, mean NEES ~10.0")
 def test_real_scan_splits_covariance_is_consistent(shared_data):
     import sys
     from pathlib import Path
