@@ -170,9 +170,9 @@ def gtsam_failure(what: str, exc: Exception) -> EstimationError:
             near = (f" near node {match.group(2)}" if match.group(1) == "x"
                     else f" near variable {match.group(1)}{match.group(2)}")
         return EstimationError(
-            f"{what} failed: indeterminate linear system{near} (some of its 6 dof are not "
-            "constrained: a part of the graph without a prior or a link to the rest, or a "
-            "node held only by direction factors); add a prior or more factors")
+            f"{what} failed: indeterminate linear system{near} (some of its 6 dof are "
+            "constrained by no factor, e.g. factors whose information is zero in some "
+            "direction); add a prior or more factors")
     if len(text) > 300:
         text = text[:297] + "..."
     return EstimationError(f"{what} failed: {type(exc).__name__}: {text or 'no message'}")
@@ -248,8 +248,10 @@ class FactorRecord:
 class OptimizeResult:
     """What an optimisation did: errors are GTSAM's 0.5 * sum of squared whitened residuals.
 
-    ``anchored_node`` is the node the weak gauge prior (``GAUGE_SIGMA``) was put on because
-    the graph has no Pose3 prior, else None. The errors never include that anchor.
+    ``anchored_nodes`` are the nodes a weak gauge prior (``GAUGE_SIGMA``) was put on: the
+    first node of each connected part of the graph that has no Pose3 prior (one node for a
+    connected graph without a prior); ``anchored_node`` is the first of them, else None. The
+    errors never include those anchors.
     """
 
     method: str
@@ -257,6 +259,7 @@ class OptimizeResult:
     final_error: float
     iterations: int
     anchored_node: int | None = None
+    anchored_nodes: tuple[int, ...] = ()
 
 
 class PoseGraph:
@@ -282,8 +285,7 @@ class PoseGraph:
         self._isam: gtsam.ISAM2 | None = None
         self._isam_nodes: set[int] = set()
         self._isam_factor_count = 0
-        self._isam_gauge_done = False
-        self._isam_anchor: int | None = None
+        self._isam_anchors: list[int] = []
 
     # ---------------------------------------------------------------- building
     def add_node(self, node_id: int, T_world_sensor: gtsam.Pose3 | np.ndarray,
@@ -472,15 +474,36 @@ class PoseGraph:
     def _has_prior(self) -> bool:  # the name older callers used
         return self.has_pose_prior()
 
-    def _gauge_factor(self) -> gtsam.NonlinearFactor:
-        first = self.sorted_ids()[0]
-        return gtsam.PriorFactorPose3(node_key(first), self.nodes[first].pose,
+    def unanchored_parts(self) -> list[int]:
+        """The first node of each connected part of the graph (nodes joined by factors on
+        two or more nodes) that holds no Pose3 prior: its gauge is free."""
+        parent = {node_id: node_id for node_id in self.nodes}
+
+        def root(i):
+            while parent[i] != i:
+                parent[i] = parent[parent[i]]
+                i = parent[i]
+            return i
+
+        for record in self.factors:
+            first, *rest = record.nodes
+            for other in rest:
+                parent[root(other)] = root(first)
+        anchored = {root(record.nodes[0]) for record in self.factors
+                    if isinstance(record.factor, gtsam.PriorFactorPose3)}
+        firsts: dict[int, int] = {}
+        for node_id in self.sorted_ids():
+            firsts.setdefault(root(node_id), node_id)
+        return sorted(first for r, first in firsts.items() if r not in anchored)
+
+    def _gauge_factor(self, node_id: int) -> gtsam.NonlinearFactor:
+        return gtsam.PriorFactorPose3(node_key(node_id), self.nodes[node_id].pose,
                                       gtsam.noiseModel.Isotropic.Sigma(6, GAUGE_SIGMA))
 
     def _graph_for_solving(self) -> gtsam.NonlinearFactorGraph:
         graph = self.graph()
-        if not self.has_pose_prior() and self.nodes:
-            graph.add(self._gauge_factor())
+        for node_id in self.unanchored_parts():
+            graph.add(self._gauge_factor(node_id))
         return graph
 
     def error(self) -> float:
@@ -504,7 +527,7 @@ class PoseGraph:
             raise EstimationError("cannot optimise an empty pose graph")
         initial_error = self.error()
         if method == "lm":
-            anchored = None if self.has_pose_prior() else self.sorted_ids()[0]
+            anchored = tuple(self.unanchored_parts())
             params = gtsam.LevenbergMarquardtParams()
             params.setMaxIterations(max_iterations)
             params.setRelativeErrorTol(relative_tolerance)
@@ -518,7 +541,7 @@ class PoseGraph:
             self._reset_isam()
         elif method == "isam2":
             estimate = self._isam2_update(extra_steps=isam2_extra_steps)
-            anchored = self._isam_anchor
+            anchored = tuple(self._isam_anchors)
             iterations = 1 + isam2_extra_steps
         else:
             raise EstimationError(f"unknown optimisation method {method!r}: use 'lm' or 'isam2'")
@@ -528,7 +551,8 @@ class PoseGraph:
         for node_id, pose in poses.items():
             self.nodes[node_id].pose = pose
         self._marginals = None
-        return OptimizeResult(method, initial_error, self.error(), iterations, anchored)
+        return OptimizeResult(method, initial_error, self.error(), iterations,
+                              anchored[0] if anchored else None, anchored)
 
     def _isam2_update(self, extra_steps: int = 0) -> gtsam.Values:
         if self._isam is None:
@@ -541,10 +565,11 @@ class PoseGraph:
         new_factors = gtsam.NonlinearFactorGraph()
         for record in self.factors[self._isam_factor_count:]:
             new_factors.add(record.factor)
-        anchor = None
-        if not self._isam_gauge_done and not self.has_pose_prior():
-            new_factors.add(self._gauge_factor())
-            anchor = self.sorted_ids()[0]
+        # a weak prior on each part with a free gauge (once per part)
+        anchors = [node_id for node_id in self.unanchored_parts()
+                   if node_id not in self._isam_anchors]
+        for node_id in anchors:
+            new_factors.add(self._gauge_factor(node_id))
         new_values = gtsam.Values()
         new_nodes = [node_id for node_id in self.sorted_ids() if node_id not in self._isam_nodes]
         for node_id in new_nodes:
@@ -560,9 +585,7 @@ class PoseGraph:
             self._reset_isam()
             raise gtsam_failure("iSAM2", exc) from None
         # Book-keep only once GTSAM has taken the update.
-        self._isam_gauge_done = True
-        if anchor is not None:
-            self._isam_anchor = anchor
+        self._isam_anchors.extend(anchors)
         self._isam_nodes.update(new_nodes)
         self._isam_factor_count = len(self.factors)
         return estimate

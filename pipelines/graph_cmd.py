@@ -84,10 +84,17 @@ def run_optimize(args) -> int:
         print("octofactor: note: the graph has no factors; nothing to optimise", file=sys.stderr)
     # GTSAM failures arrive as one-line EstimationErrors (cli.main prints them, exit 2).
     result = graph.optimize(method=args.method, max_iterations=args.max_iterations)
-    if result.anchored_node is not None:
-        print(f"octofactor: note: the graph has no prior: node {result.anchored_node} is "
+    anchored = result.anchored_nodes
+    if len(anchored) == 1:
+        print(f"octofactor: note: the graph has no prior: node {anchored[0]} is "
               f"anchored at its initial pose by a weak prior (sigma {GAUGE_SIGMA:g} rad, "
               f"{GAUGE_SIGMA:g} m) to fix the gauge", file=sys.stderr)
+    elif anchored:
+        shown = ", ".join(str(i) for i in anchored[:10]) + (", ..." if len(anchored) > 10 else "")
+        print(f"octofactor: note: the graph has {len(anchored)} unconnected parts without a "
+              f"prior: nodes {shown} are anchored at their initial poses by weak priors "
+              f"(sigma {GAUGE_SIGMA:g} rad, {GAUGE_SIGMA:g} m) to fix their gauges",
+              file=sys.stderr)
     print(f"initial error: {result.initial_error:.10g}")
     print(f"final error:   {result.final_error:.10g} "
           f"({result.iterations} iterations, {result.method})")
