@@ -68,7 +68,8 @@ def register(add_command) -> None:
     parser.add_argument("--vp-distance", type=float, default=None,
                         help="d of eq. (12) in metres (point model; default 1000: a direction)")
     parser.add_argument("--gate", type=float, default=None,
-                        help="chi-square gate of eq. (15), 2 dof (default: 99 %% = 9.21)")
+                        help="chi-square gate of eq. (15), 2 dof (default: 95 %% = 5.99; "
+                             "--paper: 99 %% = 9.21)")
     parser.add_argument("--resolution", type=float, default=None,
                         help="octree leaf size (m; default 0.05)")
     parser.add_argument("--max-range", type=float, default=None,
