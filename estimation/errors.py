@@ -33,5 +33,10 @@ class FormatError(OctofactorError):
         self.reason = message
 
 
+class FormatWarning(UserWarning):
+    """A file was read, but part of it was not (e.g. g2o elements octofactor does not use):
+    the CLI prints it as one ``octofactor: warning:`` line."""
+
+
 class EstimationError(OctofactorError):
     """An estimator was given input it cannot work with."""

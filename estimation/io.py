@@ -177,6 +177,7 @@ def _validate_g2o(path: PathLike) -> None:
     """Check every line GTSAM will read, so errors name the line (GTSAM's do not)."""
     seen_vertex = set()
     count = 0
+    skipped: dict[str, list[int]] = {}
     check_input_file(path)
     with open(path, "rb") as handle:
         for line_no, raw in enumerate(handle, 1):
@@ -194,8 +195,9 @@ def _validate_g2o(path: PathLike) -> None:
             if tag in ("VERTEX_SE2", "EDGE_SE2"):
                 raise FormatError(path, f"{tag} is a 2-D element; octofactor reads 3-D g2o files",
                                   line=line_no)
-            if tag not in _G2O_TOKENS:
-                continue  # another g2o element (GTSAM skips it too)
+            if tag not in _G2O_TOKENS:  # another g2o element: GTSAM skips it too, say so
+                skipped.setdefault(tag, []).append(line_no)
+                continue
             expected = _G2O_TOKENS[tag]
             if expected is None:  # FIX id...: the ids must be vertices defined before
                 for token in tokens[1:]:
@@ -230,6 +232,16 @@ def _validate_g2o(path: PathLike) -> None:
             count += 1
     if count == 0:
         raise FormatError(path, "no VERTEX_SE3:QUAT or EDGE_SE3:QUAT lines (not a 3-D g2o file)")
+    if skipped:
+        import warnings
+
+        from .errors import FormatWarning
+
+        listed = ", ".join(f"{tag} x{len(lines)} (line {lines[0]}"
+                           + (", ..." if len(lines) > 1 else "") + ")"
+                           for tag, lines in sorted(skipped.items()))
+        warnings.warn(f"{path}: skipped g2o elements octofactor does not read: {listed}",
+                      FormatWarning, stacklevel=3)
 
 
 def read_g2o(path: PathLike) -> PoseGraph:

@@ -296,3 +296,23 @@ def test_atomic_write_uses_the_umask_like_open(tmp_path):
     finally:
         os.umask(umask)
     assert (tmp_path / "f.txt").stat().st_mode & 0o777 == 0o644
+
+
+def test_g2o_elements_that_are_not_read_are_named(tmp_path, capsys):
+    """A g2o element octofactor (and GTSAM) does not read is not dropped in silence: the
+    reader warns with its tag and line, the CLI prints that as one warning line."""
+    from estimation.errors import FormatWarning
+    from pipelines.cli import main
+
+    info = " ".join(["100 0 0 0 0 0", "100 0 0 0 0", "100 0 0 0", "100 0 0", "100 0", "100"])
+    path = tmp_path / "prior.g2o"
+    path.write_text("VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1\nVERTEX_SE3:QUAT 1 1 0 0 0 0 0 1\n"
+                    f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {info}\n"
+                    f"EDGE_SE3_PRIOR 0 0 0 0 0 0 0 0 1 {info}\n")
+    with pytest.warns(FormatWarning, match=r"EDGE_SE3_PRIOR x1 \(line 4\)"):
+        graph = read_g2o(path)
+    assert len(graph.factors) == 1
+    assert main(["graph", "info", str(path)]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"octofactor: warning: {path}: skipped g2o elements octofactor does not "
+                   "read: EDGE_SE3_PRIOR x1 (line 4)"]
