@@ -156,7 +156,8 @@ class FrameResult:
     index, timestamp : the frame's
     T_world_camera : gtsam.Pose3, the filtered pose
     cov_pose : (6, 6) its covariance, GTSAM tangent order [rotation, translation]
-    vo : the odometry result (None for the first frame)
+    vo : the odometry result (None for the first frame); with keyframes its ``T_prev_curr``
+        is measured from the keyframe
     vp_outcomes : list of estimation.vp_ekf.VpUpdate, one per direction tried
     detections : number of directions the detectors gave
     notes : reasons for skipped or degraded steps ("vo: ...", "vp: ...")
@@ -238,16 +239,8 @@ class VpSlam:
         if self.filter is None:
             self._start(frame)
         else:
-            T_before = self.filter.T_world_camera
             vo, partner = self._odometry(frame, frame_vo, notes)
-            if vo is not None and vo.success and self._keyframes:
-                self.filter.predict_from_keyframe(vo.T_prev_curr, vo.cov)
-            elif vo is not None and vo.success:
-                self.filter.predict_vo(vo.T_prev_curr, vo.cov)
-            else:
-                self.filter.predict_vo(self._T_guess, self._failure_cov)
-            if vo is not None and vo.success:
-                self._T_guess = T_before.between(self.filter.T_world_camera)
+            self._predict(vo)
         # a VO result reused from the cache counts the time it took when it was computed
         ms["vo_reused"] = self._reused_ms
         ms["vo"] = (time.perf_counter() - t0) * 1e3 + self._reused_ms
@@ -321,6 +314,19 @@ class VpSlam:
         self.filter = self._estimator.slam_filter(self.K, T0, cov0, cfg.ekf)
         self._T_guess = gtsam.Pose3()
         self._gap = (gtsam.Pose3(), np.zeros((6, 6)))
+
+    def _predict(self, vo) -> None:
+        """Predict with the odometry's measurement (from the keyframe or the previous frame),
+        else with constant velocity and ``vo_failure_sigma``."""
+        if vo is None or not vo.success:
+            self.filter.predict_vo(self._T_guess, self._failure_cov)
+            return
+        T_before = self.filter.T_world_camera
+        if self._keyframes:
+            self.filter.predict_from_keyframe(vo.T_prev_curr, vo.cov)
+        else:
+            self.filter.predict_vo(vo.T_prev_curr, vo.cov)
+        self._T_guess = T_before.between(self.filter.T_world_camera)
 
     @property
     def _keyframes(self) -> bool:
