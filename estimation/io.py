@@ -445,6 +445,14 @@ def _sidecar_list(sidecar: Path, document: dict, key: str) -> list:
     return value
 
 
+def _sidecar_node(sidecar: Path, entry: dict, where: str, graph: PoseGraph) -> int:
+    """The ``node`` of a sidecar entry: a node id of the g2o file, else a FormatError."""
+    node_id = entry.get("node")
+    if type(node_id) is not int or node_id not in graph.nodes:
+        raise FormatError(sidecar, f"{where}.node must be a node id of the g2o file")
+    return node_id
+
+
 def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
     """Validate the sidecar against ``graph`` (read from its g2o file) and apply it."""
     try:
@@ -503,9 +511,7 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
     restored_priors = []
     for index, entry in enumerate(priors):
         where = f"priors[{index}]"
-        node_id = entry.get("node")
-        if type(node_id) is not int or node_id not in graph.nodes:
-            raise FormatError(sidecar, f"{where}.node must be a node id of the g2o file")
+        node_id = _sidecar_node(sidecar, entry, where, graph)
         kind = entry.get("kind", "prior")
         if not isinstance(kind, str) or not kind:
             raise FormatError(sidecar, f"{where}.kind must be a non-empty string")
@@ -525,9 +531,7 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
     restored = []
     for index, entry in enumerate(directions):
         where = f"directions[{index}]"
-        node_id = entry.get("node")
-        if type(node_id) is not int or node_id not in graph.nodes:
-            raise FormatError(sidecar, f"{where}.node must be a node id of the g2o file")
+        node_id = _sidecar_node(sidecar, entry, where, graph)
         vectors = []
         for key in ("direction_sensor", "direction_world"):
             vector = _sidecar_array(sidecar, entry.get(key), (3,), f"{where}.{key}")

@@ -78,17 +78,22 @@ def so3_exp(w: np.ndarray) -> np.ndarray:
     return gtsam.Rot3.Expmap(np.asarray(w, dtype=float).reshape(3)).matrix()
 
 
-def as_pose3(T):
-    """A gtsam.Pose3 from a Pose3 or a (4, 4) array (rotation re-orthonormalised)."""
-    import gtsam
+def as_pose3(T, what: str = "pose"):
+    """A gtsam.Pose3 from a Pose3 or a (4, 4) array: :func:`estimation.pose_graph.as_pose3`
+    (imported when first needed: gtsam is heavy)."""
+    from .pose_graph import as_pose3 as checked_pose3
 
-    if isinstance(T, gtsam.Pose3):
-        return T
-    M = np.asarray(T, dtype=float)
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-        raise EstimationError(f"a pose must be a gtsam.Pose3 or a finite 4x4 array, got "
-                              f"shape {M.shape}")
-    return gtsam.Pose3(gtsam.Rot3.ClosestTo(M[:3, :3]), M[:3, 3].copy())
+    return checked_pose3(T, what)
+
+
+def _vo_noise(cov: np.ndarray) -> np.ndarray:
+    """Q: the (6, 6) increment covariance on the camera pose rows, checked and symmetrised."""
+    cov = np.asarray(cov, dtype=float)
+    if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+        raise EstimationError("VO covariance must be a finite 6x6 matrix")
+    Q = np.zeros((STATE_DIM, STATE_DIM))
+    Q[POSE, POSE] = 0.5 * (cov + cov.T)
+    return Q
 
 
 def axis_jacobians(R_world_camera: np.ndarray, R_world_manhattan: np.ndarray, axis: int
@@ -136,7 +141,7 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         self.config = config
         self.K_cam = checked_camera_matrix(K)
         self.T_world_camera = (gtsam.Pose3() if T_world_camera is None
-                               else as_pose3(T_world_camera))
+                               else as_pose3(T_world_camera, "T_world_camera"))
         cov_pose = np.diag([1e-8] * 6) if cov_pose is None else np.asarray(cov_pose, float)
         if cov_pose.shape != (6, 6) or not np.all(np.isfinite(cov_pose)):
             raise EstimationError(f"cov_pose must be a finite 6x6 matrix, got {cov_pose.shape}")
@@ -172,7 +177,7 @@ class VanishingPointESKF(ExtendedKalmanFilter):
         """Express the estimate in another world frame: T_new_camera = T_new_old T_old_camera.
 
         P is unchanged: both perturbations act on the right (module docstring)."""
-        A = as_pose3(T_new_old)
+        A = as_pose3(T_new_old, "T_new_old")
         self.T_world_camera = A.compose(self.T_world_camera)
         self.T_world_keyframe = A.compose(self.T_world_keyframe)
         if self.R_world_manhattan is not None:
@@ -186,15 +191,10 @@ class VanishingPointESKF(ExtendedKalmanFilter):
     def predict_vo(self, T_prev_curr, cov: np.ndarray) -> None:
         """Predict with a camera-frame increment T_prev_curr and its (6, 6) covariance
         ([rotation, translation], right perturbation of the increment)."""
-        U = as_pose3(T_prev_curr)
-        cov = np.asarray(cov, dtype=float)
-        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
-            raise EstimationError("VO covariance must be a finite 6x6 matrix")
+        U = as_pose3(T_prev_curr, "T_prev_curr")
         F = np.eye(STATE_DIM)
         F[POSE, POSE] = U.inverse().AdjointMap()
-        Q = np.zeros((STATE_DIM, STATE_DIM))
-        Q[POSE, POSE] = 0.5 * (cov + cov.T)
-        self.F, self.Q = F, Q
+        self.F, self.Q = F, _vo_noise(cov)
         self.predict(u=U)
         self._finish_step()
 
@@ -211,17 +211,12 @@ class VanishingPointESKF(ExtendedKalmanFilter):
     def predict_from_keyframe(self, T_keyframe_curr, cov: np.ndarray) -> None:
         """Predict with an increment measured from the keyframe's image to the current one
         and its (6, 6) covariance ([rotation, translation], right perturbation)."""
-        U = as_pose3(T_keyframe_curr)
-        cov = np.asarray(cov, dtype=float)
-        if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
-            raise EstimationError("VO covariance must be a finite 6x6 matrix")
+        U = as_pose3(T_keyframe_curr, "T_keyframe_curr")
         F = np.eye(STATE_DIM)
         F[POSE, POSE] = 0.0
         F[POSE, KEYFRAME] = U.inverse().AdjointMap()
-        Q = np.zeros((STATE_DIM, STATE_DIM))
-        Q[POSE, POSE] = 0.5 * (cov + cov.T)
-        self.F, self.Q = F, Q
-        self.P = F @ self.P @ F.T + Q
+        self.F, self.Q = F, _vo_noise(cov)
+        self.P = F @ self.P @ F.T + self.Q
         self.T_world_camera = self.T_world_keyframe.compose(U)
         self._finish_step()
 

@@ -336,7 +336,9 @@ class Undistorter:
 
         map_x, map_y = self._maps
         if frame.rgb.shape[:2] != map_x.shape or frame.depth_m.shape != map_x.shape:
-            return frame  # the size check of the caller names the file
+            raise PerceptionError(f"frame {frame.index}: rgb {frame.rgb.shape[:2]} / depth "
+                                  f"{frame.depth_m.shape} do not match the camera's "
+                                  f"{map_x.shape} that the distortion maps were made for")
         rgb = cv2.remap(frame.rgb, map_x, map_y, cv2.INTER_LINEAR,
                         borderMode=cv2.BORDER_CONSTANT)
         depth = cv2.remap(frame.depth_m, map_x, map_y, cv2.INTER_NEAREST,

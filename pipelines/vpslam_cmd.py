@@ -22,6 +22,7 @@ def register(add_command) -> None:
                         help="override the sequence's camera file (image size from camera.txt "
                              "or the first image)")
     parser.add_argument("--distortion", metavar="K1,K2,P1,P2[,K3]", default=None,
+                        type=_distortion,
                         help="the colour camera's lens distortion (OpenCV order; TUM fr1: "
                              "0.2624,-0.9531,-0.0054,0.0026,1.1633): frames are undistorted "
                              "on reading, the intrinsics stay the pinhole camera")
@@ -52,7 +53,7 @@ def register(add_command) -> None:
                         help="odometry against keyframes (cloned in the filter) instead of "
                              "frame to frame (docs/vp_ekf.md)")
     parser.add_argument("--vp-min-motion", metavar="DEG,M", default=None,
-                        type=lambda text: tuple(float(v) for v in text.split(",")),
+                        type=_numbers(2, "DEG,M"),
                         help="measure directions only on frames that turned DEG or moved M "
                              "since the last one measured (default 0,0: every frame)")
     parser.add_argument("--direction-factors", choices=("predicted", "fixed", "none"),
@@ -89,13 +90,40 @@ def register(add_command) -> None:
     parser.set_defaults(func=run)
 
 
-def _intrinsics(text: str) -> tuple[float, float, float, float]:
+def _numbers(counts, expected: str):
+    """An argparse type: comma-separated numbers, as many as one of ``counts``."""
+    counts = (counts,) if isinstance(counts, int) else tuple(counts)
+
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            values = ()
+        if len(values) not in counts:
+            raise argparse.ArgumentTypeError(f"expected {expected} (comma-separated numbers)")
+        return values
+
+    return parse
+
+
+def _distortion(text: str) -> tuple[float, ...] | None:
+    """--distortion: OpenCV's coefficients, checked by perception.rgbd.check_distortion."""
+    from perception.errors import PerceptionError
+    from perception.rgbd import check_distortion
+
     try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
+        return check_distortion(_numbers((4, 5, 8), "K1,K2,P1,P2[,K3]")(text))
+    except PerceptionError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def _intrinsics(text: str) -> tuple[float, float, float, float]:
     import math
 
+    try:
+        values = _numbers(4, "fx,fy,cx,cy")(text)
+    except argparse.ArgumentTypeError:
+        values = ()
     if len(values) != 4 or not all(math.isfinite(v) for v in values) \
             or not all(v > 0 for v in values[:2]):
         raise argparse.ArgumentTypeError("expected fx,fy,cx,cy (four finite numbers, fx and "
@@ -127,7 +155,7 @@ def run(args) -> int:
     name = args.name or Path(out_dir).resolve().name
     result = run_vpslam(args.seq_dir, out_dir, config, intrinsics=intrinsics,
                         progress=not args.quiet, max_frames=args.max_frames, name=name,
-                        ellipses=not args.no_ellipses, distortion=_distortion(args.distortion))
+                        ellipses=not args.no_ellipses, distortion=args.distortion)
     summary = {k: result.report.get(k) for k in (
         "frames", "vp_updates", "vp_gated", "ate_aligned_rmse_m", "ate_unaligned_rmse_m",
         "rot_err_mean_deg", "final_drift_xyz_m",
@@ -179,21 +207,6 @@ def build_config(args):
     if args.detector is None and vp_model == "manhattan" and config.detector == "seed":
         changes["detector"] = "normals+lines"  # the seed detector gives one VP
     return replace(config, **changes)
-
-
-def _distortion(text):
-    """The --distortion coefficients as a tuple (None: none given)."""
-    if text is None:
-        return None
-    from estimation.errors import OctofactorError
-    from perception.rgbd import check_distortion
-
-    try:
-        values = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise OctofactorError(f"--distortion must be comma-separated numbers, got "
-                              f"{text!r}") from None
-    return check_distortion(values)
 
 
 def _resolve_intrinsics(seq_dir, fx_fy_cx_cy, depth_scale):
