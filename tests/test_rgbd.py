@@ -318,3 +318,21 @@ def test_bad_distortion_is_refused(bad):
 
     with pytest.raises(PerceptionError, match="distortion"):
         check_distortion(bad)
+
+
+def test_a_sequence_with_distortion_reads_undistorted_frames(shared_data):
+    """TumRgbdSequence(distortion=...) hands out the undistorted frames (the wiring of
+    vpslam --distortion), and without it the raw ones."""
+    from perception.rgbd import CameraIntrinsics, TumRgbdSequence, Undistorter
+
+    seq_dir = shared_data / "rgbd" / "tum_fr1_rpy"
+    if not seq_dir.is_dir():
+        pytest.skip("../shared/data/rgbd is missing")
+    intr = CameraIntrinsics(517.3, 516.5, 318.6, 255.3, 640, 480, 5000.0)
+    D = (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)
+    raw = TumRgbdSequence(seq_dir, intrinsics=intr)[3]
+    undistorted = TumRgbdSequence(seq_dir, intrinsics=intr, distortion=D)[3]
+    expected = Undistorter(intr, D)(raw)
+    np.testing.assert_array_equal(undistorted.rgb, expected.rgb)
+    np.testing.assert_array_equal(undistorted.depth_m, expected.depth_m)
+    assert not np.array_equal(undistorted.rgb, raw.rgb)
