@@ -185,15 +185,19 @@ def _ransac_frame(normals: np.ndarray, config: NormalsConfig) -> np.ndarray | No
 
 def manhattan_from_depth(depth_m: np.ndarray, K: np.ndarray,
                          R_camera_manhattan_guess: np.ndarray | None = None,
-                         config: NormalsConfig = NormalsConfig()) -> NormalsManhattan:
+                         config: NormalsConfig = NormalsConfig(),
+                         normals: np.ndarray | None = None) -> NormalsManhattan:
     """Return the Manhattan axes supported by the depth image's surface normals.
 
     ``R_camera_manhattan_guess`` (e.g. the filter's prediction) starts the mean shift, as in
-    OPVO's tracking; without it a RANSAC search finds the frame.
+    OPVO's tracking; without it a RANSAC search finds the frame. ``normals``: the image's
+    :func:`depth_normals` (same ``config``) when they were computed already, e.g. in another
+    thread before the guess was known; ``depth_m`` is then not read again.
     """
     start = time.perf_counter()
     K = np.asarray(K, dtype=float)
-    normals = depth_normals(depth_m, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config)
+    if normals is None:
+        normals = depth_normals(depth_m, K[0, 0], K[1, 1], K[0, 2], K[1, 2], config)
     empty = NormalsManhattan(None, np.zeros((0, 3)), np.zeros((0, 3, 3)),
                              np.zeros(0, dtype=int), len(normals),
                              (time.perf_counter() - start) * 1e3)

@@ -85,6 +85,9 @@ class VpSlamConfig:
         measures every frame (docs/vp_ekf.md gives the trade-off measured on real data)
     estimator : name of a registered filter estimator (``octofactor plugins``) whose
         ``slam_filter(K, T_world_camera, cov_pose, ekf_config)`` builds the filter
+    overlap : True (default): the direction detectors' work that needs no prediction (depth
+        normals, line or seed vanishing points) runs in a worker thread while the odometry
+        runs (Open3D and OpenCV release the GIL); the results are the same either way
     direction_factors : each direction the filter accepted becomes a graph direction factor
         whose world direction is the filter's prediction of the structure axis at that
         update ("predicted", default), the axis as the filter estimated it when it was first
@@ -110,6 +113,7 @@ class VpSlamConfig:
     keyframe_rotation_deg: float = 3.0
     estimator: str = "vp_ekf"
     direction_factors: str = "predicted"
+    overlap: bool = True
 
     def __post_init__(self):
         coerce_fields(self)  # VpSlamConfig(**report["config"]) == the run's config
@@ -224,6 +228,7 @@ class VpSlam:
         self._axes_world = {}      # "fixed" direction factors: axis -> world direction
         self._prior = None         # the first node's prior factor (moved when levelling)
         self._vp_pose = None       # the filter's pose at the last frame with directions
+        self._pool = None          # the worker thread of config.overlap (started lazily)
         s_rot, s_trans = config.ekf.vo_failure_sigma
         self._failure_cov = np.diag([s_rot ** 2] * 3 + [s_trans ** 2] * 3)
 
@@ -236,9 +241,11 @@ class VpSlam:
         frame_vo = self._vo_frame(frame)
         vo = None
         partner = None
+        pending: dict = {}
         if self.filter is None:
             self._start(frame)
         else:
+            pending = self._start_detection(frame)
             vo, partner = self._odometry(frame, frame_vo, notes)
             self._predict(vo)
         # a VO result reused from the cache counts the time it took when it was computed
@@ -248,7 +255,7 @@ class VpSlam:
 
         t1 = time.perf_counter()
         if self._view_changed():
-            outcomes, n_detected = self._directions(frame, notes)
+            outcomes, n_detected = self._directions(frame, notes, pending)
         else:
             outcomes, n_detected = [], 0
             self.counts["vp_same_view"] += 1
@@ -406,11 +413,44 @@ class VpSlam:
         self._vp_pose = T
         return True
 
-    def _directions(self, frame, notes) -> tuple[list, int]:
-        """Detect the structure's directions and update the filter; (outcomes, detected)."""
+    def _start_detection(self, frame) -> dict:
+        """Submit the detectors' work that needs no prediction to the worker thread, so that
+        it runs while the odometry does ({} when ``config.overlap`` is off, without
+        directions, or when whether this view is measured depends on the prediction)."""
+        cfg = self.config
+        if not cfg.overlap or cfg.vp_model == "none" or any(cfg.vp_min_motion):
+            return {}
+        if self._pool is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="vpslam")
+        pending = {}
+        if cfg.detector in ("normals+lines", "normals"):
+            from perception.manhattan_normals import depth_normals
+
+            K = self.K
+            pending["normals"] = self._pool.submit(depth_normals, frame.depth_m, K[0, 0],
+                                                   K[1, 1], K[0, 2], K[1, 2])
+        if cfg.detector in ("normals+lines", "lines", "seed"):
+            pending["image"] = self._pool.submit(_detect_in_image, cfg.detector, frame.rgb,
+                                                 self.K)
+        return pending
+
+    def close(self) -> None:
+        """Stop the worker thread (``run_vpslam`` does; a closed VpSlam starts a new one)."""
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+            self._pool = None
+
+    def _directions(self, frame, notes, pending=None) -> tuple[list, int]:
+        """Detect the structure's directions and update the filter; (outcomes, detected).
+
+        ``pending``: futures of :meth:`_start_detection` ("normals", "image") whose results
+        replace the same computations here."""
         cfg = self.config
         if cfg.vp_model == "none":
             return [], 0
+        pending = pending or {}
         outcomes, detected = [], 0
         if cfg.detector in ("normals+lines", "normals"):
             from perception.manhattan_normals import manhattan_from_depth
@@ -419,16 +459,16 @@ class VpSlam:
             R_wm = getattr(self.filter, "R_world_manhattan", None)
             if R_wm is not None:
                 guess = self.filter.T_world_camera.rotation().matrix().T @ R_wm
-            found = manhattan_from_depth(frame.depth_m, self.K, guess)
+            normals = pending["normals"].result() if "normals" in pending else None
+            found = manhattan_from_depth(frame.depth_m, self.K, guess, normals=normals)
             detected += len(found.directions)
             if len(found.directions):
                 outcomes += self.filter.update_directions(found.directions,
                                                           direction_covs=list(found.covs))
+        in_image = (pending["image"].result() if "image" in pending
+                    else _detect_in_image(cfg.detector, frame.rgb, self.K))
         if cfg.detector in ("normals+lines", "lines"):
-            from perception.vanishing_points import detect_manhattan
-
-            bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
-            detection = detect_manhattan(bgr, self.K)
+            detection = in_image
             detected += len(detection.vps)
             if detection.vps and cfg.vp_model == "manhattan":
                 uvs = [vp.uv for vp in detection.vps]
@@ -441,10 +481,7 @@ class VpSlam:
                 if vp is not None:
                     outcomes.append(self.filter.update_vp(vp.uv, self._pixel_cov(vp.cov)))
         if cfg.detector == "seed":
-            from perception.vanishing_points import detect_seed
-
-            bgr = np.ascontiguousarray(frame.rgb[..., ::-1])
-            vp = detect_seed(bgr, K=self.K).forward()
+            vp = in_image.forward()
             if vp is not None:
                 detected += 1
                 outcomes.append(self.filter.update_vp(vp.uv, self._pixel_cov(vp.cov)))
@@ -525,6 +562,21 @@ class VpSlam:
             self.graph.add_direction(node_id, outcome.direction_sensor, d_world,
                                      outcome.direction_cov)
         self._accepted = []
+
+
+def _detect_in_image(detector: str, rgb: np.ndarray, K: np.ndarray):
+    """The image detector's result (VPResult): line VPs, or the seed detector's (None for
+    the normals-only detector)."""
+    if detector == "normals":
+        return None
+    bgr = np.ascontiguousarray(rgb[..., ::-1])
+    if detector == "seed":
+        from perception.vanishing_points import detect_seed
+
+        return detect_seed(bgr, K=K)
+    from perception.vanishing_points import detect_manhattan
+
+    return detect_manhattan(bgr, K)
 
 
 def level_rotation(R_world_camera: np.ndarray, R_world_manhattan: np.ndarray) -> np.ndarray:
@@ -611,25 +663,28 @@ def run_vpslam(seq_dir, out_dir=None, config: VpSlamConfig = VpSlamConfig(), int
         from tqdm import tqdm
 
         indices = tqdm(indices, desc="vpslam", unit="frame")
-    for index in indices:
-        start = time.perf_counter()
-        try:
-            frame = sequence[index]
-        except OctofactorError as exc:
-            reason = str(exc)
-            print(f"vpslam: skipped frame {index}: {reason}", file=sys.stderr)
-            skipped_frames[type(exc).__name__] += 1
-            skipped_list.append({"index": index, "reason": reason})
-            slam.skip()
-            continue
-        timings["read"].append((time.perf_counter() - start) * 1e3)
-        result = slam.step(frame)
-        results.append(result)
-        for note in result.notes:
-            notes_count[note] += 1
-        for key in ("vo", "vp_ekf", "scan"):
-            timings[key].append(result.ms[key])
-        timings["total"].append((time.perf_counter() - start) * 1e3 + result.ms["vo_reused"])
+    try:
+        for index in indices:
+            start = time.perf_counter()
+            try:
+                frame = sequence[index]
+            except OctofactorError as exc:
+                reason = str(exc)
+                print(f"vpslam: skipped frame {index}: {reason}", file=sys.stderr)
+                skipped_frames[type(exc).__name__] += 1
+                skipped_list.append({"index": index, "reason": reason})
+                slam.skip()
+                continue
+            timings["read"].append((time.perf_counter() - start) * 1e3)
+            result = slam.step(frame)
+            results.append(result)
+            for note in result.notes:
+                notes_count[note] += 1
+            for key in ("vo", "vp_ekf", "scan"):
+                timings[key].append(result.ms[key])
+            timings["total"].append((time.perf_counter() - start) * 1e3 + result.ms["vo_reused"])
+    finally:
+        slam.close()
     if not results:
         raise OctofactorError(f"{seq_dir}: no frame could be read")
     if len(skipped_list) > MAX_SKIPPED_FRACTION * n_frames:
