@@ -21,8 +21,13 @@ and prints aligned ATE (SE(3) Umeyama, as ``evo_ape -a``), mean rotation error r
 first matched frame, RPE and the median total ms per frame (whole step: read, VO, VP, EKF;
 Open3D: its odometry call only), then the targets of the real-data VP-SLAM issue.
 
+``--flatten-texture SIGMA,CONTRAST`` runs everything on a copy of each sequence whose colour
+images are blurred (Gaussian, SIGMA px) and their contrast scaled about the image mean: the
+same real depth and ground truth with the texture taken away, a stand-in for feature-poor
+scenes (``12,0.1`` leaves nothing for the corner tracker; ``--frames`` applies).
+
     .venv/bin/python benchmarks/vpslam_real.py [--seq DIR FX,FY,CX,CY[,K1,K2,P1,P2,K3] ...]
-        [--frames N]
+        [--frames N] [--flatten-texture SIGMA,CONTRAST]
 """
 from __future__ import annotations
 
@@ -110,12 +115,22 @@ def main(argv=None) -> int:
                         help="a TUM-layout sequence, its intrinsics and optionally its lens "
                              "distortion (repeatable)")
     parser.add_argument("--frames", type=int, default=None, help="first N frames only")
+    parser.add_argument("--flatten-texture", metavar="SIGMA,CONTRAST", default=None,
+                        help="run on copies whose colour images are blurred and flattened")
     args = parser.parse_args(argv)
 
     from perception.rgbd import CameraIntrinsics, TumRgbdSequence, listed_image_size
 
     sequences = ([(Path(d), tuple(float(v) for v in k.split(","))) for d, k in args.seq]
                  if args.seq else DEV)
+    workdir = None
+    if args.flatten_texture:
+        import tempfile
+
+        sigma, contrast = (float(v) for v in args.flatten_texture.split(","))
+        workdir = tempfile.TemporaryDirectory(prefix="vpslam_flat_")
+        sequences = [(flatten_texture(seq, Path(workdir.name) / seq.name, sigma, contrast),
+                      k) for seq, k in sequences]
     for seq, (fx, fy, cx, cy, *distortion) in sequences:
         width, height = listed_image_size(seq)
         intr = CameraIntrinsics(fx, fy, cx, cy, width, height, 5000.0)
@@ -149,6 +164,24 @@ def main(argv=None) -> int:
                      "total <= 100 ms: {}".format(*("PASS" if ok else "FAIL" for ok in (
                          d["ate"] <= best, d["rot"] <= best_rot, d["ms"] <= 100.0)))))
     return 0
+
+
+def flatten_texture(seq: Path, out: Path, sigma: float, contrast: float) -> Path:
+    """Copy a TUM-layout sequence to ``out`` with its colour images blurred and flattened."""
+    import shutil
+
+    import cv2
+
+    shutil.copytree(seq, out)
+    for line in (out / "rgb.txt").read_text().splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        path = out / line.split()[1]
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR).astype(np.float32)
+        blurred = cv2.GaussianBlur(image, (0, 0), sigma)
+        flat = blurred.mean() + contrast * (blurred - blurred.mean())
+        cv2.imwrite(str(path), np.clip(np.rint(flat), 0, 255).astype(np.uint8))
+    return out
 
 
 if __name__ == "__main__":

@@ -217,6 +217,14 @@ class OdometryConfig:
         pitch bias coupled with vertical motion: use it on the simulator).
     coupling : float
         "coupled" model: weight in [0, 1] of the information matrix's correlations.
+    textureless_fallback : bool
+        When the feature + PnP guess finds nothing to track (no texture), run Open3D's
+        legacy hybrid odometry instead of the tensor one, on half-size images: the tensor
+        hybrid leans on the photometric term (scaling the image contrast by 0.3 or 3 moves its
+        ICL-NUIM ATE from 0.57 to 1.2-1.6 cm) and drifts where the image is flat; the legacy
+        hybrid weighs the depth residual about 30:1 (Open3D's LAMBDA_HYBRID_DEPTH = 0.968) and
+        keeps its accuracy there (ICL-NUIM with its texture blurred away, docs/vp_ekf.md). Only with ``pnp_init`` and the tensor
+        backend; ``OdometryResult.backend`` says which ran.
     """
 
     backend: str = "tensor"
@@ -240,6 +248,7 @@ class OdometryConfig:
     max_disagreement: tuple[float, float] = (0.05, 3.0)
     cov_model: str = "coupled"
     coupling: float = COUPLING
+    textureless_fallback: bool = True
 
     def __post_init__(self):
         coerce_fields(self)  # lists (JSON, TOML) -> tuples: equal to the original config
@@ -271,6 +280,9 @@ class OdometryResult:
         backend counts on depth subsampled by ``information_stride``; 0 on failure).
     init : str
         Where the dense odometry started: "pnp", "given" (T_init) or "identity".
+    backend : str
+        Which dense odometry ran: "tensor", "legacy", or "legacy-textureless" (the
+        ``textureless_fallback``, on half-size images); "" when none did.
     information : np.ndarray or None
         Open3D's raw 6x6 information matrix ([rotation, translation], left perturbation in
         the previous camera frame, unit-variance points; the tensor backend's on depth
@@ -285,6 +297,7 @@ class OdometryResult:
     correspondences: int = 0
     init: str = "identity"
     information: np.ndarray | None = None
+    backend: str = ""
 
 
 def _failure(T_init: gtsam.Pose3, config: OdometryConfig, reason: str, start: float,
@@ -416,18 +429,27 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
         if T_pnp is not None:
             T_init, init = T_pnp, "pnp"
 
+    backend = config.backend
+    if (backend == "tensor" and config.pnp_init and T_pnp is None
+            and config.textureless_fallback):
+        backend = "legacy-textureless"
     try:
-        if config.backend == "tensor":
+        if backend == "tensor":
             ok, T, info = _dense_tensor(prev, curr, intr, T_init, config)
+            # the information is counted on subsampled depth
+            stride = max(1, int(config.information_stride))
+        elif backend == "legacy-textureless":
+            ok, T, info = _dense_legacy(prev, curr, intr, T_init, config, factor=2)
+            stride = 2
         else:
             ok, T, info = _dense_legacy(prev, curr, intr, T_init, config)
+            stride = 1
     except RuntimeError as exc:  # Open3D raises when no pixel corresponds at all
         return _failure(T_init, config, f"Open3D odometry failed ({exc})", start, init)
     if not ok:
         return _failure(T_init, config, "Open3D odometry did not converge", start, init)
     correspondences = int(round(info[5, 5]))
-    # the tensor backend counts on subsampled depth: compare the full-resolution estimate
-    stride = max(1, int(config.information_stride)) if config.backend == "tensor" else 1
+    # compare the full-resolution estimate of the count
     if correspondences * stride ** 2 < config.min_correspondences:
         return _failure(T_init, config, f"too few correspondences ({correspondences})", start,
                         init)
@@ -450,24 +472,42 @@ def rgbd_odometry(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
         return _failure(T_init, config, "singular information matrix", start, init)
     cov = information_to_covariance(info, T_prev_curr, config, intr.width)
     return OdometryResult(T_prev_curr, cov, True, "", (time.perf_counter() - start) * 1e3,
-                          correspondences, init, np.array(info))
+                          correspondences, init, np.array(info), backend)
 
 
 def _dense_legacy(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
-                  T_init: gtsam.Pose3, config: OdometryConfig):
-    """(converged, T_prev_curr 4x4, information 6x6) from Open3D's legacy hybrid odometry."""
+                  T_init: gtsam.Pose3, config: OdometryConfig, factor: int = 1):
+    """(converged, T_prev_curr 4x4, information 6x6) from Open3D's legacy hybrid odometry.
+
+    ``factor`` > 1 runs it on images shrunk by that factor (colour INTER_AREA, depth
+    INTER_NEAREST), dropping as many trailing (finest) pyramid levels of
+    ``config.iterations``; the information matrix then counts the shrunk image's pixels."""
+    import cv2
     import open3d as o3d
+
+    size = (intr.width // factor, intr.height // factor)
 
     def rgbd_image(frame: RgbdFrame):
         depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0).astype(np.float32)
+        rgb = np.ascontiguousarray(frame.rgb)
+        if factor > 1:
+            rgb = np.ascontiguousarray(cv2.resize(rgb, size, interpolation=cv2.INTER_AREA))
+            depth = np.ascontiguousarray(cv2.resize(depth, size,
+                                                    interpolation=cv2.INTER_NEAREST))
         return o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(np.ascontiguousarray(frame.rgb)), o3d.geometry.Image(depth),
+            o3d.geometry.Image(rgb), o3d.geometry.Image(depth),
             depth_scale=1.0, depth_trunc=config.depth_max, convert_rgb_to_intensity=True)
 
-    pinhole = o3d.camera.PinholeCameraIntrinsic(intr.width, intr.height, intr.fx, intr.fy,
-                                                intr.cx, intr.cy)
+    levels = [int(n) for n in config.iterations]
+    shrink = factor
+    while shrink > 1 and len(levels) > 1:
+        levels.pop()
+        shrink //= 2
+    cam = intr.resized(*size) if factor > 1 else intr
+    pinhole = o3d.camera.PinholeCameraIntrinsic(cam.width, cam.height, cam.fx, cam.fy,
+                                                cam.cx, cam.cy)
     option = o3d.pipelines.odometry.OdometryOption(
-        iteration_number_per_pyramid_level=o3d.utility.IntVector(list(config.iterations)),
+        iteration_number_per_pyramid_level=o3d.utility.IntVector(levels),
         depth_diff_max=config.depth_diff_max, depth_min=config.depth_min,
         depth_max=config.depth_max)
     # source = current, target = previous: Open3D's result maps source into target

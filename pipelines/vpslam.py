@@ -247,6 +247,8 @@ class VpSlam:
         else:
             pending = self._start_detection(frame)
             vo, partner = self._odometry(frame, frame_vo, notes)
+            if getattr(vo, "backend", "") == "legacy-textureless":
+                self.counts["vo_textureless"] += 1
             self._predict(vo)
         # a VO result reused from the cache counts the time it took when it was computed
         ms["vo_reused"] = self._reused_ms
@@ -844,6 +846,7 @@ def _report(config, slam, results, skipped_frames, skipped_list, notes_count, ti
         "vp_gated": int(slam.counts["vp_gated"]),
         "vp_initialised": int(slam.counts["vp_initialised"]),
         "vp_same_view": int(slam.counts["vp_same_view"]),
+        "vo_textureless_pairs": int(slam.counts["vo_textureless"]),
         "skipped_frames": dict(sorted(skipped_frames.items())),
         "skipped_frame_list": skipped_list,
         "skipped_updates": dict(sorted(notes_count.items())),
