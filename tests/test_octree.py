@@ -396,6 +396,12 @@ def test_fuse_rotated_multi_node_graph_equals_graph2tree(scan_points, graph2tree
     assert fuse(pg, 0.1, max_range=6.0).to_bytes_ot() == ref_ot
     tree.write_bt(tmp_path / "rot.bt")
     assert (tmp_path / "rot.bt").read_bytes() == ref_bt
+    # the GTSAM-free path of `octofactor map G.graph` (the file's records, no PoseGraph)
+    from estimation.scan_graph import read_scan_graph_records
+    from mapping.fusion import fuse_scan_records
+
+    nodes, _ = read_scan_graph_records(path)
+    assert fuse_scan_records(nodes, 0.1, max_range=6.0).to_bytes_ot() == ref_ot
 
 
 def test_insert_ray_equals_per_key_updates_and_cuts_at_max_range():
