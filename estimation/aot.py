@@ -78,9 +78,7 @@ def _source_path(module_name: str) -> Path:
 
 def _cpu_id() -> bytes:
     """What the compiled code depends on besides its source: machine and instruction sets."""
-    import platform
-
-    ident = platform.machine().encode()
+    ident = os.uname().machine.encode() if hasattr(os, "uname") else sys.platform.encode()
     try:
         with open("/proc/cpuinfo", "rb") as handle:
             for line in handle:

@@ -54,7 +54,7 @@ def kernel_backend(request):
     ks.jit_only = False
     # every kernel call of a "compiled" run found its signature in the compiled module
     assert ks.jit_calls == before, "a kernel call fell back to the JIT: add its signature " \
-        "(OCTOFACTOR_AOT_RECORD=1, docs/install.md)"
+        "(OCTOFACTOR_AOT_RECORD=1, docs/octree.md, Start-up)"
 
 
 @pytest.fixture(scope="session")
