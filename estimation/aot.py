@@ -18,7 +18,7 @@ are the same either way: the same numba front end compiles both, from the same s
 the same flags (no fastmath, Python error model; the GIL is released as with ``nogil``).
 
 The compiled module's name carries a hash of the kernels' source, of the signature table, of
-this file and of the CPU (it is compiled for the host's instruction set), so an edited kernel
+:data:`ABI` and of the CPU (it is compiled for the host's instruction set), so an edited kernel
 or another machine silently falls back to the JIT instead of running stale code.
 ``OCTOFACTOR_JIT=1`` in the environment switches the compiled modules off.
 """
@@ -97,10 +97,15 @@ def table_path(module_name: str) -> Path:
     return source.with_name(source.stem + ".aot.json")
 
 
+#: bump when :func:`arg_key`, :func:`_numba_type` or the flags of :func:`build` change: the
+#: compiled modules' names change with it, so older builds are not loaded
+ABI = 1
+
+
 def aot_module_name(module_name: str) -> str:
-    """The name of the compiled module for the current source, table, loader and CPU."""
-    digest = hashlib.sha256()
-    for path in (_source_path(module_name), table_path(module_name), Path(__file__)):
+    """The name of the compiled module for the current source, table, ABI and CPU."""
+    digest = hashlib.sha256(f"octofactor-aot-{ABI}".encode())
+    for path in (_source_path(module_name), table_path(module_name)):
         digest.update(path.read_bytes())
     digest.update(_cpu_id())
     package, _, base = module_name.rpartition(".")
