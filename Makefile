@@ -57,4 +57,4 @@ lint: setup
 	$(VENV)/bin/ruff check .
 
 clean:
-	rm -rf out .pytest_cache mapping/_kernels_aot_*.so
+	rm -rf out .pytest_cache mapping/_kernels_aot_*.so estimation/registration/_kernels_aot_*.so

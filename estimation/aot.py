@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 #: kernel modules compiled ahead of time by ``python -m estimation.aot build``
-MODULES = ("mapping._kernels",)
+MODULES = ("mapping._kernels", "estimation.registration._kernels")
 _JIT_ONLY = os.environ.get("OCTOFACTOR_JIT", "") not in ("", "0")
 _RECORD = os.environ.get("OCTOFACTOR_AOT_RECORD") or None  # "1": add calls to the tables
 _recorded: dict[str, dict[str, set]] = {}
