@@ -230,6 +230,28 @@ def _numba_type(key: str):
     return types.Array(from_dtype(np.dtype(dtype)), int(digits), layout, readonly="r" in flags)
 
 
+_BUILD_CACHE = None
+
+
+def _isolate_numba_cache() -> None:
+    """Point numba's on-disk cache at an empty temporary folder for this process.
+
+    The cache holds machine code only, and the ahead-of-time compiler links the kernels' LLVM
+    IR: a kernel loaded from the cache could not be linked. numba reads NUMBA_CACHE_DIR when
+    it is imported, so this must come first (``python -m estimation.aot build``).
+    """
+    global _BUILD_CACHE
+    if _BUILD_CACHE is not None:
+        return
+    if "numba" in sys.modules:
+        raise RuntimeError("estimation.aot.build runs in a fresh process: "
+                           "python -m estimation.aot build")
+    import tempfile
+
+    _BUILD_CACHE = tempfile.TemporaryDirectory(prefix="octofactor-aot-cache-")
+    os.environ["NUMBA_CACHE_DIR"] = _BUILD_CACHE.name
+
+
 def build(module_name: str, verbose: bool = False) -> Path:
     """Compile the kernels of ``module_name`` for every signature of its table into
     ``<package>/<module>_aot_<hash>.<ext suffix>`` (written under a temporary name, then
@@ -238,11 +260,7 @@ def build(module_name: str, verbose: bool = False) -> Path:
     import tempfile
     import warnings
 
-    if "numba" in sys.modules:
-        # numba's on-disk cache holds machine code only, and the ahead-of-time compiler links
-        # the kernels' LLVM IR: it runs in a process whose numba reads no cache (main())
-        raise RuntimeError("estimation.aot.build runs in a fresh process: "
-                           "python -m estimation.aot build")
+    _isolate_numba_cache()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # numba.pycc is pending deprecation
         import numba.pycc.compiler as pycc_compiler
@@ -302,11 +320,6 @@ def main(argv: list[str] | None = None) -> int:
     s = sub.add_parser("status", help="which kernel modules are compiled and current")
     s.add_argument("modules", nargs="*", default=list(MODULES))
     args = ap.parse_args(argv)
-    if args.action == "build" and "numba" not in sys.modules:
-        import tempfile
-
-        cache = tempfile.TemporaryDirectory(prefix="octofactor-aot-cache-")
-        os.environ["NUMBA_CACHE_DIR"] = cache.name  # read when numba is imported (build())
     for module_name in args.modules:
         name = aot_module_name(module_name)
         current = importlib.util.find_spec(name) is not None
