@@ -18,7 +18,7 @@ are the same either way: the same numba front end compiles both, from the same s
 the same flags (no fastmath, Python error model; the GIL is released as with ``nogil``).
 
 The compiled module's name carries a hash of the kernels' source, of the signature table, of
-:data:`ABI` and of the CPU (it is compiled for the host's instruction set), so an edited kernel
+:data:`ABI`, of numpy's version and of the CPU (it is compiled for the host's instruction set), so an edited kernel
 or another machine silently falls back to the JIT instead of running stale code.
 ``OCTOFACTOR_JIT=1`` in the environment switches the compiled modules off.
 """
@@ -104,7 +104,8 @@ ABI = 1
 
 def aot_module_name(module_name: str) -> str:
     """The name of the compiled module for the current source, table, ABI and CPU."""
-    digest = hashlib.sha256(f"octofactor-aot-{ABI}".encode())
+    # the compiled module is linked against numpy's C API (array boxing) and this Python
+    digest = hashlib.sha256(f"octofactor-aot-{ABI} numpy-{np.__version__}".encode())
     for path in (_source_path(module_name), table_path(module_name)):
         digest.update(path.read_bytes())
     digest.update(_cpu_id())

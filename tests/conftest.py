@@ -31,10 +31,15 @@ def pytest_sessionstart(session):
     if hasattr(session.config, "workerinput") or os.environ.get("OCTOFACTOR_JIT", "") not in (
             "", "0"):
         return
-    subprocess.run([sys.executable, "-m", "estimation.aot", "build", "--if-stale"],
-                   check=True, cwd=REPO_ROOT, stdout=subprocess.DEVNULL,
-                   env=dict(os.environ, PYTHONPATH=os.pathsep.join(
-                       [str(REPO_ROOT), os.environ.get("PYTHONPATH", "")])))
+    done = subprocess.run([sys.executable, "-m", "estimation.aot", "build", "--if-stale"],
+                          cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          text=True, env=dict(os.environ, PYTHONPATH=os.pathsep.join(
+                              [str(REPO_ROOT), os.environ.get("PYTHONPATH", "")])))
+    if done.returncode:
+        last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
+        pytest.exit(f"compiling the numba kernels ahead of time failed: {last} (needs gcc and "
+                    "the Python headers; OCTOFACTOR_JIT=1 runs the tests on numba's JIT alone)",
+                    returncode=1)
 
 
 @pytest.fixture(params=["compiled", "jit"])
