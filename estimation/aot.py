@@ -18,8 +18,9 @@ are the same either way: the same numba front end compiles both, from the same s
 the same flags (no fastmath, Python error model; the GIL is released as with ``nogil``).
 
 The compiled module's name carries a hash of the kernels' source, of the signature table, of
-:data:`ABI`, of numpy's version and of the CPU (it is compiled for the host's instruction set), so an edited kernel
-or another machine silently falls back to the JIT instead of running stale code.
+:data:`ABI`, of numpy's version and of the CPU (it is compiled for the host's instruction
+set), so an edited kernel or another machine silently falls back to the JIT instead of running
+stale code.
 ``OCTOFACTOR_JIT=1`` in the environment switches the compiled modules off.
 """
 from __future__ import annotations
