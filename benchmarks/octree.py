@@ -8,12 +8,14 @@ time. liboctomap (the Debian / PyPI octomap-python build) is single-threaded; ou
 the rays of a scan on numba's thread count (NUMBA_NUM_THREADS), everything else is one thread.
 
     .venv/bin/python benchmarks/octree.py [--quick] [--repeats N] [--only SECTION] [--res R]
-    .venv/bin/python benchmarks/octree.py --process [--repeats N] [--res R]
+    .venv/bin/python benchmarks/octree.py --process [--also-jit] [--repeats N] [--res R]
 
 ``--process`` times whole processes as a user runs them: ``octofactor map G.graph -r R -m 10
 -o OUT.bt`` against liboctomap's ``graph2tree -i G.graph -res R -m 10 -o OUT.bt`` on the same
 .graph file (the corridor's 50 scans x 100k points, and a tiny 2 x 5k-point graph for the
 start-up), alternating, median wall time of the repeats; the two .bt files must be identical.
+The kernels run compiled ahead of time when ``make setup`` built them (estimation/aot.py);
+``--also-jit`` adds a third command, the same on numba's JIT alone (``OCTOFACTOR_JIT=1``).
 
 The insertion rows alternate our runs with liboctomap's (so a change of machine load hits both
 sides alike) and take the median of ``--repeats`` runs of each.
@@ -116,6 +118,9 @@ def main() -> int:
     ap.add_argument("--process", action="store_true",
                     help="time whole `octofactor map` processes against graph2tree on the "
                     "same .graph file")
+    ap.add_argument("--also-jit", action="store_true",
+                    help="with --process: also time `octofactor map` on numba's JIT alone "
+                    "(OCTOFACTOR_JIT=1), as it runs without the compiled kernels")
     args = ap.parse_args()
     repeats = args.repeats or (3 if args.quick else 5)
     if args.process:
@@ -185,9 +190,17 @@ def process_rows(args, repeats: int) -> int:
     octofactor = [sys.executable, "-m", "pipelines"]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO),
                                                        os.environ.get("PYTHONPATH", "")]))
+    jit_env = dict(env, OCTOFACTOR_JIT="1")
+    from estimation.aot import kernels
+
+    compiled = kernels("mapping._kernels").compiled
+    how = (f"compiled ahead of time ({compiled.__name__})" if compiled else
+           "JIT only (no current compiled module: python -m estimation.aot build)")
+    if args.also_jit:
+        how += "; JIT only = the same with OCTOFACTOR_JIT=1 (numba cache warm)"
     print(f"# whole processes, median wall time of {repeats} alternating runs; "
-          f"octofactor = {' '.join(octofactor)} map (numba cache warm), graph2tree = "
-          f"{graph2tree}")
+          f"octofactor = {' '.join(octofactor)} map, graph2tree = {graph2tree}")
+    print(f"# kernels: {how}")
     print(f"# load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -205,19 +218,30 @@ def process_rows(args, repeats: int) -> int:
                                          "-q", "-o", str(ours_out)]
                 ref_cmd = [graph2tree, "-i", str(graph), "-res", str(res), "-m", "10",
                            "-o", str(ref_out)]
+                jit_out = tmp / "jit.bt"
+                jit_cmd = ours_cmd[:-1] + [str(jit_out)]
+                sides = [(ours_cmd, env), (ref_cmd, env)]
+                if args.also_jit:
+                    sides.append((jit_cmd, jit_env))
                 subprocess.run(ours_cmd, check=True, env=env)  # warm the numba cache
-                times = {0: [], 1: []}
+                subprocess.run(jit_cmd, check=True, env=jit_env)
+                times = {side: [] for side in range(len(sides))}
                 for _ in range(repeats):
-                    for side, cmd in ((0, ours_cmd), (1, ref_cmd)):
+                    for side, (cmd, cmd_env) in enumerate(sides):
                         start = time.perf_counter()
-                        subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL,
+                        subprocess.run(cmd, check=True, env=cmd_env, stdout=subprocess.DEVNULL,
                                        stderr=subprocess.DEVNULL)
                         times[side].append(time.perf_counter() - start)
                 same = ours_out.read_bytes() == ref_out.read_bytes()
                 ours, ref = statistics.median(times[0]), statistics.median(times[1])
-                print(f"{label:<28} res {res:<5g} octofactor map {ours:8.3f} s  graph2tree "
-                      f"{ref:8.3f} s  ratio {ref / ours:6.2f}x  ({n_points / ours / 1e6:.2f} "
-                      f"Mpts/s; .bt identical: {same})")
+                line = (f"{label:<28} res {res:<5g} octofactor map {ours:8.3f} s  graph2tree "
+                        f"{ref:8.3f} s  ratio {ref / ours:6.2f}x  ({n_points / ours / 1e6:.2f} "
+                        f"Mpts/s; .bt identical: {same})")
+                if args.also_jit:
+                    jit = statistics.median(times[2])
+                    line += (f"  | JIT only {jit:8.3f} s, ratio {ref / jit:6.2f}x, .bt "
+                             f"identical: {jit_out.read_bytes() == ref_out.read_bytes()}")
+                print(line)
     print(f"# load average at end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     return 0
 

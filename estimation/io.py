@@ -18,7 +18,6 @@ import os
 import re
 import struct
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import gtsam
@@ -26,13 +25,20 @@ import numpy as np
 
 from .errors import EstimationError, FormatError, OctofactorError
 from .fileio import (
-    BinaryReader,
     atomic_write,
     check_input_file,
     library_path,
     read_input_bytes,
 )
 from .pose_graph import PoseGraph, Scan, as_covariance, direction_tangent_covariance, node_key
+from .scan_graph import (
+    MAX_COORDINATE,
+    MAX_SIGMA,
+    MIN_SIGMA,
+    POINT_DTYPE,
+    Pose6D,
+    read_scan_graph_records,
+)
 
 PathLike = str | os.PathLike
 
@@ -137,12 +143,8 @@ def write_tum(path: PathLike, graph: PoseGraph) -> None:
 _G2O_TOKENS = {"VERTEX_SE3:QUAT": 9, "EDGE_SE3:QUAT": 31, "FIX": None}
 _G2O_TAG = re.compile(r"[A-Z][A-Z0-9_]*(:[A-Z0-9_]+)?")
 _CONTROL = re.compile(r"[\x00-\x08\x0e-\x1f\x7f]")  # binary garbage in a text line
-#: largest |coordinate| (m) a pose-graph file may hold: beyond it float64 costs overflow
-MAX_COORDINATE = 1e9
 #: GTSAM keys at or above 2**56 carry a symbol character in their top byte
 MAX_NODE_ID = (1 << 56) - 1
-#: edge information eigenvalues must lie in [1/MAX_SIGMA**2, 1/MIN_SIGMA**2]
-MIN_SIGMA, MAX_SIGMA = 1e-10, 1e10
 
 
 def _check_translation(path: PathLike, line_no: int, t: np.ndarray, what: str) -> None:
@@ -567,18 +569,11 @@ def _apply_g2o_sidecar(sidecar: Path, graph: PoseGraph) -> None:
 
 
 # ---------------------------------------------------------------- OctoMap .graph
-_POINT = struct.Struct("<iddd")            # int32 tag 3, then x y z as float64
-_POSE = struct.Struct("<iddd" + "idddd")   # tag 3, t; tag 4, qw qx qy qz
-_POINT_DTYPE = np.dtype([("tag", "<i4"), ("xyz", "<f8", (3,))])
 GRAPH_POSE_KEY = "octomap_pose_f32"        # node metadata: the file's float32 pose, kept exact
 
 
-@dataclass(frozen=True)
-class _Pose6D:
-    """An OctoMap Pose6D as float32: translation and quaternion (w, x, y, z)."""
-
-    t: np.ndarray
-    q_wxyz: np.ndarray
+class _Pose6D(Pose6D):
+    """A :class:`~estimation.scan_graph.Pose6D` that converts to and from ``gtsam.Pose3``."""
 
     def to_pose3(self) -> gtsam.Pose3:
         w, x, y, z = (float(v) for v in self.q_wxyz)
@@ -590,34 +585,14 @@ class _Pose6D:
         return cls(np.asarray(pose.translation(), dtype=np.float32),
                    np.array([q.w(), q.x(), q.y(), q.z()], dtype=np.float32))
 
-    def pack(self) -> bytes:
-        return _POSE.pack(3, *(float(v) for v in self.t), 4, *(float(v) for v in self.q_wxyz))
 
-
-def _pose6d_for(pose: gtsam.Pose3, cached: _Pose6D | None) -> _Pose6D:
+def _pose6d_for(pose: gtsam.Pose3, cached: Pose6D | None) -> Pose6D:
     # Reuse the float32 numbers read from a file while the pose is unchanged, so that a
     # read -> write round trip is byte-identical (a quaternion -> matrix -> quaternion
     # round trip can flip the last float32 bit or the sign of q).
-    if cached is not None and cached.to_pose3().equals(pose, 1e-6):
+    if cached is not None and _Pose6D(cached.t, cached.q_wxyz).to_pose3().equals(pose, 1e-6):
         return cached
     return _Pose6D.from_pose3(pose)
-
-
-def _read_pose6d(reader: BinaryReader, what: str) -> _Pose6D:
-    start = reader.pos
-    values = reader.unpack("iddd" "idddd", what)
-    t64, q64 = np.array(values[1:4]), np.array(values[5:9])
-    if not (np.all(np.isfinite(t64)) and np.all(np.isfinite(q64))):
-        raise reader.error(f"{what} has NaN or inf values", offset=start)
-    if np.max(np.abs(t64)) > MAX_COORDINATE:
-        raise reader.error(f"{what} translation is beyond {MAX_COORDINATE:g} m", offset=start)
-    if np.max(np.abs(q64)) > 2.0:
-        raise reader.error(f"{what} quaternion is not of unit norm", offset=start)
-    t, q = t64.astype(np.float32), q64.astype(np.float32)
-    norm = float(np.linalg.norm(q.astype(float)))
-    if abs(norm - 1.0) > 1e-3:
-        raise reader.error(f"{what} quaternion norm is {norm:.6g}, not 1", offset=start)
-    return _Pose6D(t, q)
 
 
 def read_scan_graph(path: PathLike) -> PoseGraph:
@@ -626,52 +601,19 @@ def read_scan_graph(path: PathLike) -> PoseGraph:
     Points stay float32 in the sensor frame, as OctoMap stores them. Edges become
     ``odometry`` between factors whose covariance is the identity divided by the edge
     weight (the format carries no covariance; the weight is kept in the record's metadata).
+    The records are read and checked by :func:`estimation.scan_graph.read_scan_graph_records`.
     """
-    data = read_input_bytes(path)
-    reader = BinaryReader(data, path)
-    (n_nodes,) = reader.unpack("I", "node count")
-    # The smallest node is 4 + 64 + 4 bytes: a lying count fails here, before allocation.
-    reader.require(n_nodes * 72, f"{n_nodes} nodes")
+    nodes, edges = read_scan_graph_records(path)
     graph = PoseGraph()
-    for index in range(n_nodes):
-        node_start = reader.pos
-        (n_points,) = reader.unpack("I", f"point count of node #{index}")
-        chunk = reader.take(n_points * _POINT.size, f"{n_points} points of node #{index}")
-        raw = np.frombuffer(chunk, dtype=_POINT_DTYPE)
-        # NaN fails the comparison too; checked in float64, before the float32 cast overflows
-        in_range = np.all(np.abs(raw["xyz"]) <= MAX_COORDINATE, axis=1)
-        if not np.all(in_range):
-            bad = int(np.flatnonzero(~in_range)[0])
-            raise reader.error(f"node #{index} point {bad} is NaN, inf or beyond "
-                               f"{MAX_COORDINATE:g} m", offset=node_start + 4 + bad * _POINT.size)
-        points = raw["xyz"].astype(np.float32)
-        pose6d = _read_pose6d(reader, f"pose of node #{index}")
-        (node_id,) = reader.unpack("I", f"id of node #{index}")
-        if node_id in graph.nodes:
-            raise reader.error(f"duplicate node id {node_id}", offset=reader.pos - 4)
-        graph.add_node(node_id, pose6d.to_pose3(), scan=Scan(points),
+    for node in nodes:
+        pose6d = _Pose6D(node.pose.t, node.pose.q_wxyz)
+        graph.add_node(node.node_id, pose6d.to_pose3(), scan=Scan(node.points),
                        **{GRAPH_POSE_KEY: pose6d})
-    (n_edges,) = reader.unpack("I", "edge count")
-    reader.require(n_edges * (8 + 64 + 8), f"{n_edges} edges")
-    for index in range(n_edges):
-        edge_start = reader.pos
-        first, second = reader.unpack("II", f"node ids of edge #{index}")
-        constraint = _read_pose6d(reader, f"constraint of edge #{index}")
-        (weight,) = reader.unpack("d", f"weight of edge #{index}")
-        if first not in graph.nodes or second not in graph.nodes:
-            raise reader.error(f"edge #{index} refers to unknown node {first} or {second}",
-                               offset=edge_start)
-        if first == second:
-            raise reader.error(f"edge #{index} goes from node {first} to itself (a self-loop)",
-                               offset=edge_start)
-        if not MAX_SIGMA ** -2 <= weight <= MIN_SIGMA ** -2:  # NaN fails too
-            raise reader.error(f"edge #{index} weight {weight} is outside "
-                               f"[{MAX_SIGMA ** -2:g}, {MIN_SIGMA ** -2:g}]",
-                               offset=reader.pos - 8)
-        record = graph.add_between(first, second, constraint.to_pose3(), np.eye(6) / weight)
-        record.metadata.update({GRAPH_POSE_KEY: constraint, "weight": weight})
-    if reader.remaining:
-        raise reader.error(f"{reader.remaining} unexpected bytes after the last edge")
+    for edge in edges:
+        constraint = _Pose6D(edge.constraint.t, edge.constraint.q_wxyz)
+        record = graph.add_between(edge.first, edge.second, constraint.to_pose3(),
+                                   np.eye(6) / edge.weight)
+        record.metadata.update({GRAPH_POSE_KEY: constraint, "weight": edge.weight})
     graph.timestamps_missing = f"{path} has none (OctoMap .graph files store no timestamps)"
     return graph
 
@@ -696,7 +638,7 @@ def write_scan_graph(path: PathLike, graph: PoseGraph) -> list[str]:
             dropped["point labels"] = None
         if node.cov is not None:
             dropped["node covariances"] = None
-        block = np.empty(len(points), dtype=_POINT_DTYPE)
+        block = np.empty(len(points), dtype=POINT_DTYPE)
         block["tag"] = 3
         block["xyz"] = points.astype(np.float64)
         parts.append(struct.pack("<I", len(points)))

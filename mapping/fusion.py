@@ -91,6 +91,28 @@ def _same_pose(cached, t, q) -> bool:
     return bool(np.abs(ct - t).max() < 1e-6 and same_q)
 
 
+def fuse_scan_records(nodes, resolution: float, max_range: float = -1.0,
+                      discretize: bool = False, progress: bool = False) -> OcTree:
+    """:func:`fuse` for the nodes of a .graph file as read by
+    :func:`estimation.scan_graph.read_scan_graph_records` (no PoseGraph, so no GTSAM): the
+    scans inserted at the file's float32 poses in id order, bit-identical to graph2tree."""
+    tree = OcTree(resolution)
+    ordered = sorted(nodes, key=lambda node: node.node_id)
+    iterator = ordered
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(ordered, desc="fusing scans", unit="scan")
+    for node in iterator:
+        if len(node.points) == 0:
+            continue
+        points_world, origin = transform_points_octomap(node.points, node.pose.t,
+                                                        node.pose.q_wxyz)
+        tree.insert_point_cloud(points_world, origin, max_range=max_range,
+                                discretize=discretize)
+    return tree
+
+
 def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: bool = False,
          tree: OcTree | None = None, progress: bool = False, n_classes: int | None = None,
          **tree_kwargs) -> OcTree:

@@ -42,7 +42,9 @@ def _header(magic: bytes, tree_id: str, size: int, res: float) -> bytes:
 
 def bt_bytes(tree: OcTree) -> bytes:
     """The .bt file of ``tree`` as it is (writeBinaryConst)."""
-    from . import _kernels as k
+    from .octree import _k
+
+    k = _k()
 
     nodes, _, _ = tree._structure()
     tree_id = getattr(tree, "_file_id", None) or tree.tree_type
@@ -195,7 +197,9 @@ def _make_tree(cls, res: float, n_slots: int, first, cmask, val, nb: int):
 
 
 def _read_bt(data: bytes, hdr: _Header, path) -> OcTree:
-    from . import _kernels as k
+    from .octree import _k
+
+    k = _k()
 
     if hdr.tree_id not in BT_IDS:
         raise FormatError(path, f"unknown or unsupported tree id {hdr.tree_id!r} in a .bt file "
@@ -251,7 +255,9 @@ def check_finite_log_odds(data: bytes, path, data_start: int, node_bytes: int,
 
 
 def _read_ot(data: bytes, hdr: _Header, path) -> OcTree:
-    from . import _kernels as k
+    from .octree import _k
+
+    k = _k()
 
     if hdr.tree_id == "SemanticOcTree":
         from .semantic import SemanticOcTree

@@ -104,7 +104,9 @@ class SemanticOcTree(OcTree):
             ok &= norm <= max_range
         if not ok.any():
             return stats
-        from . import _kernels as k
+        from .octree import _k
+
+        k = _k()
 
         codes = k.keys_to_codes(np.ascontiguousarray(keys[ok]))
         uniq, inv = np.unique(codes, return_inverse=True)
@@ -167,7 +169,9 @@ class SemanticOcTree(OcTree):
 
         A pruned leaf averages the posteriors of the voxels with evidence inside it.
         """
-        from . import _kernels as k
+        from .octree import _k
+
+        k = _k()
 
         m = keys.shape[0]
         c = self.n_classes
@@ -206,7 +210,9 @@ class SemanticOcTree(OcTree):
         rec = np.empty(nodes.shape[0], dtype=[("v", "<f4"), ("m", "u1")])
         rec["v"] = self._val[nodes]
         rec["m"] = np.where(self._first[nodes] >= 0, self._cmask[nodes], 0)
-        from . import _kernels as k
+        from .octree import _k
+
+        k = _k()
 
         keys = k.codes_to_keys(self._sem_codes).astype("<u2")
         trailer = (_TRAILER_MAGIC + struct.pack("<IQ", self.n_classes, self._sem_codes.shape[0])
@@ -224,7 +230,9 @@ class SemanticOcTree(OcTree):
 
     @classmethod
     def _read_ot(cls, data: bytes, hdr, path) -> SemanticOcTree:
-        from . import _kernels as k
+        from .octree import _k
+
+        k = _k()
         from . import io
 
         if hdr.size == 0:

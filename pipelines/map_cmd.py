@@ -60,20 +60,38 @@ def _check_ext(path: str, allowed: tuple[str, ...]) -> str:
 
 def run_map(args: argparse.Namespace) -> int:
     from estimation.errors import OctofactorError
-    from estimation.io import load_node_clouds, read_pose_graph
-    from mapping import fuse
     from pipelines.validate import map_options
 
     _check_ext(args.output, (".bt", ".ot"))
     map_options(args)
-    graph = read_pose_graph(args.graph)
-    if args.clouds is not None:
-        load_node_clouds(graph, args.clouds)
-    if not any(n.scan is not None and len(n.scan.points) for n in graph.nodes.values()):
-        raise OctofactorError(f"{args.graph}: no node has a scan (give --clouds DIR for "
-                              ".g2o/TUM graphs)")
-    tree = fuse(graph, args.resolution, max_range=args.max_range, discretize=args.discretize,
-                progress=sys.stderr.isatty())
+    if args.clouds is None and Path(args.graph).suffix.lower() == ".graph":
+        # the .graph records hold everything graph2tree uses: no PoseGraph, no GTSAM import
+        from estimation.fileio import check_input_file
+        from estimation.scan_graph import read_scan_graph_records
+        from mapping.fusion import fuse_scan_records
+
+        try:
+            check_input_file(args.graph)
+        except FileNotFoundError:
+            raise OctofactorError(f"{args.graph}: no such file") from None
+        nodes, _ = read_scan_graph_records(args.graph)
+        if not any(len(node.points) for node in nodes):
+            raise OctofactorError(f"{args.graph}: no node has a scan (give --clouds DIR for "
+                                  ".g2o/TUM graphs)")
+        tree = fuse_scan_records(nodes, args.resolution, max_range=args.max_range,
+                                 discretize=args.discretize, progress=sys.stderr.isatty())
+    else:
+        from estimation.io import load_node_clouds, read_pose_graph
+        from mapping import fuse
+
+        graph = read_pose_graph(args.graph)
+        if args.clouds is not None:
+            load_node_clouds(graph, args.clouds)
+        if not any(n.scan is not None and len(n.scan.points) for n in graph.nodes.values()):
+            raise OctofactorError(f"{args.graph}: no node has a scan (give --clouds DIR for "
+                                  ".g2o/TUM graphs)")
+        tree = fuse(graph, args.resolution, max_range=args.max_range,
+                    discretize=args.discretize, progress=sys.stderr.isatty())
     tree.write(args.output)  # .bt or .ot by extension
     print(f"{args.output}: {tree.size()} nodes, {tree.num_leaf_nodes()} leaves, "
           f"resolution {args.resolution:g} m")

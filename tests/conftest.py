@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +22,44 @@ def _shared_data_dir() -> Path:
     raise RuntimeError(
         "shared data not found: expected ../shared/data beside the repository "
         "(or set OCTOFACTOR_SHARED_DATA)")
+
+
+def pytest_sessionstart(session):
+    """Compile the numba kernels ahead of time when they are missing or stale (as ``make
+    setup`` does), so that the tests run the compiled kernels and not only numba's JIT
+    (tests/test_aot.py checks both give the same results). OCTOFACTOR_JIT=1 skips it."""
+    if hasattr(session.config, "workerinput") or os.environ.get("OCTOFACTOR_JIT", "") not in (
+            "", "0"):
+        return
+    done = subprocess.run([sys.executable, "-m", "estimation.aot", "build", "--if-stale"],
+                          cwd=REPO_ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                          text=True, env=dict(os.environ, PYTHONPATH=os.pathsep.join(
+                              [str(REPO_ROOT), os.environ.get("PYTHONPATH", "")])))
+    if done.returncode:
+        last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
+        pytest.exit(f"compiling the numba kernels ahead of time failed: {last} (needs gcc and "
+                    "the Python headers; OCTOFACTOR_JIT=1 runs the tests on numba's JIT alone)",
+                    returncode=1)
+
+
+@pytest.fixture(params=["compiled", "jit"])
+def kernel_backend(request):
+    """Run a test on the kernels compiled ahead of time, then on numba's JIT alone."""
+    from estimation.aot import kernels
+
+    ks = kernels("mapping._kernels")
+    if request.param == "compiled" and ks.compiled is None:
+        if os.environ.get("OCTOFACTOR_JIT", "") not in ("", "0"):
+            pytest.skip("OCTOFACTOR_JIT=1: the compiled kernels are switched off")
+        pytest.fail("mapping._kernels has no current compiled module "
+                    "(python -m estimation.aot build)")
+    ks.jit_only = request.param == "jit"
+    before = ks.jit_calls
+    yield request.param
+    ks.jit_only = False
+    # every kernel call of a "compiled" run found its signature in the compiled module
+    assert ks.jit_calls == before, "a kernel call fell back to the JIT: add its signature " \
+        "(OCTOFACTOR_AOT_RECORD=1, docs/octree.md, Start-up)"
 
 
 @pytest.fixture(scope="session")

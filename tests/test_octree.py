@@ -162,7 +162,7 @@ def test_ray_keys_equal_single_point_insert_free_cells(rng):
     (0.05, 23923, 18970, 10047, 119749, 700080),
 ])
 def test_spherical_scan_golden_and_graph2tree_bytes(shared_data, graph2tree, res, nodes, leaves,
-                                                    bt_len, ot_len, mem):
+                                                    bt_len, ot_len, mem, kernel_backend):
     from estimation.io import read_scan_graph
 
     path = shared_data / "octomap" / "spherical_scan.graph"
@@ -186,7 +186,8 @@ def test_spherical_scan_golden_and_graph2tree_bytes(shared_data, graph2tree, res
                  marks=pytest.mark.slow),
 ])
 def test_scan_dat_golden_and_liboctomap_equal(scan_points, scan_graph, graph2tree, res,
-                                              max_range, nodes, leaves, bt_len, ot_len, mem):
+                                              max_range, nodes, leaves, bt_len, ot_len, mem,
+                                              kernel_backend):
     tree = OcTree(res)
     tree.insert_point_cloud(scan_points, np.zeros(3), max_range=max_range)
     assert (tree.size(), tree.num_leaf_nodes(), tree.memory_usage()) == (nodes, leaves, mem)
@@ -373,7 +374,8 @@ def test_probability_helpers(sphere_pair):
     assert np.allclose(probability(lv.log_odds), 1 - 1 / (1 + np.exp(lv.log_odds)))
 
 
-def test_fuse_rotated_multi_node_graph_equals_graph2tree(scan_points, graph2tree, tmp_path):
+def test_fuse_rotated_multi_node_graph_equals_graph2tree(scan_points, graph2tree, tmp_path,
+                                                         kernel_backend):
     """Rotated, translated node poses: fuse() reproduces graph2tree's float32 quaternion math."""
     import gtsam
 
@@ -396,6 +398,12 @@ def test_fuse_rotated_multi_node_graph_equals_graph2tree(scan_points, graph2tree
     assert fuse(pg, 0.1, max_range=6.0).to_bytes_ot() == ref_ot
     tree.write_bt(tmp_path / "rot.bt")
     assert (tmp_path / "rot.bt").read_bytes() == ref_bt
+    # the GTSAM-free path of `octofactor map G.graph` (the file's records, no PoseGraph)
+    from estimation.scan_graph import read_scan_graph_records
+    from mapping.fusion import fuse_scan_records
+
+    nodes, _ = read_scan_graph_records(path)
+    assert fuse_scan_records(nodes, 0.1, max_range=6.0).to_bytes_ot() == ref_ot
 
 
 def test_insert_ray_equals_per_key_updates_and_cuts_at_max_range():

@@ -91,7 +91,7 @@ def test_ply_export_opens_in_open3d_with_labels(rng, tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_cli_map_is_byte_identical_to_graph2tree(shared_data, tmp_path):
+def test_cli_map_is_byte_identical_to_graph2tree(shared_data, tmp_path, kernel_backend):
     from pipelines.cli import main
 
     graph = shared_data / "octomap" / "spherical_scan.graph"

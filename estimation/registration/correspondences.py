@@ -10,8 +10,11 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..aot import kernels
 from ..errors import EstimationError
-from . import _kernels
+
+# compiled ahead of time by `make setup` (estimation/aot.py), numba's JIT otherwise
+_kernels = kernels("estimation.registration._kernels")
 
 
 def _workers(n: int, k: int = 1) -> int:

@@ -17,7 +17,10 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 
-from . import _kernels
+from ..aot import kernels
+
+# compiled ahead of time by `make setup` (estimation/aot.py), numba's JIT otherwise
+_kernels = kernels("estimation.registration._kernels")
 
 
 def skew(v: np.ndarray) -> np.ndarray:
