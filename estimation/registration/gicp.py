@@ -68,8 +68,10 @@ class RegistrationConfig:
         once the alignment at the current d_max has converged (``tolerance``) or after
         ``stage_iterations`` (coarse-to-fine stages as in Open3D's multi-scale ICP;
         ``decay = max / initial`` gives exactly two stages)
-    cauchy_alpha : alpha of the Cauchy kernel, in units of the Mahalanobis distance (with the
-        (epsilon, 1, 1) covariances: the weight halves at a normal offset of about
+    cauchy_alpha : alpha of the Cauchy kernel where it is not estimated from the residuals
+        (on a voxel lattice, or ``cauchy_scale="fixed"``), in units of the Mahalanobis
+        distance (with the (epsilon, 1, 1) covariances: the weight halves at a normal offset
+        of about
         ``alpha * sqrt(2 epsilon)``, 9 cm for alpha = 2; alpha = 1 measured ~10 % less
         accurate on the room benchmark, for Open3D's per-row Cauchy kernel as well)
     cauchy_scale : "auto" (default): where neither cloud sits on a voxel lattice, alpha is
@@ -559,7 +561,7 @@ class Registration:
 
     @property
     def adaptive_scale(self) -> bool:
-        """True when the Cauchy alpha follows the residuals (``cauchy_scale="auto"``, no lattice)."""
+        """True when alpha follows the residuals (``cauchy_scale="auto"``, no lattice)."""
         return self.config.cauchy_scale == "auto" and self._lattice is None
 
     def _update_alpha(self, e: np.ndarray) -> None:
