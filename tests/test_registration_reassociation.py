@@ -100,11 +100,15 @@ def test_cauchy_alpha_follows_the_residuals_off_a_lattice():
     assert given.cauchy_alpha == 0.7
 
 
-def test_cauchy_alpha_stays_fixed_on_a_voxel_lattice():
+def test_cauchy_alpha_and_the_fixed_bread_stay_on_a_voxel_lattice():
+    # the matches jump between lattice sites there: the quantisation term's model
     source, target, _ = voxel_map_pair(3000, n_source=3000, n_dense=30000)
     result = Registration(source, target, RegistrationConfig()).run()
     assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
     assert result.cauchy_alpha == 2.0
+    assert result.diagnostic.reassociation_gain == 1.0
+    off = Registration(source, target, RegistrationConfig(quantisation=None)).run()
+    assert off.diagnostic.reassociation_gain > 1.0  # no quantisation term: re-matched
 
 
 def test_bad_scale_options_are_rejected():

@@ -138,8 +138,10 @@ class RegistrationConfig:
         deviations (of the fixed-association sandwich) along each axis
         (:meth:`Registration.reassociation_hessian`): nearest neighbours follow the noise, so
         the estimate responds less to the data than the fixed-association Hessian says
-        (3 cm point noise: mean NEES 10.6 -> 7.3; docs/registration.md). None = the
-        fixed-association Hessian (the earlier covariance)
+        (3 cm point noise: mean NEES 10.6 -> 7.0; docs/registration.md). Used where no
+        quantisation term is (on a voxel lattice the matches jump between lattice sites,
+        which that term covers). None = the fixed-association Hessian (the earlier
+        covariance)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
         choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise;
@@ -239,7 +241,8 @@ class CovarianceDiagnostic:
     reassociation_gain : mean variance ratio, trace(P_fixed^-1 P_noise) / 6, of the
         point-noise sandwich with the re-matched bread against the fixed-association one
         (1.0 = the correspondences do not follow the noise; measured ~1.0 at 2 mm i.i.d.
-        noise, ~1.5 at 3 cm; 1.0 when ``reassociation_step`` is None)
+        noise, ~1.8 at 3 cm; 1.0 when ``reassociation_step`` is None or a quantisation term
+        is in use)
     """
 
     quantisation_pitch: float | None
@@ -738,9 +741,11 @@ class Registration:
         else:
             cov_noise, unconstrained = information_to_covariance(sol.A, B)
             A_noise, gain = sol.A, 1.0
-            if cfg.reassociation_step is not None and not unconstrained:
-                # the point noise moves which neighbours are matched; a plane's common offset
-                # (the quantisation term) moves the plane as a whole and keeps them
+            if cfg.reassociation_step is not None and not unconstrained and pitch is None:
+                # the point noise moves which neighbours are matched. (On a voxel lattice the
+                # matches jump between lattice sites: that is the quantisation, which its own
+                # term covers, through the fixed-association bread: a plane's common offset
+                # moves the plane as a whole and keeps its matches.)
                 A_noise = self.reassociation_hessian(T, d_max, sol, cov_noise)
                 fixed = cov_noise
                 # the bread's differences are noisy and may turn the ellipsoid a little:
