@@ -127,3 +127,14 @@ def test_loewner_max_dominates_both(rng):
     assert np.linalg.eigvalsh(R - Q).min() > -1e-9 * np.abs(R).max()
     np.testing.assert_allclose(loewner_max(P, 0.5 * P), P, rtol=1e-9)
     np.testing.assert_allclose(loewner_max(P, 2.0 * P), 2.0 * P, rtol=1e-9)
+
+
+def test_cli_alpha_is_used_as_given(capsys):
+    from pipelines.cli import main
+
+    assert main(["register", "A.ply", "B.ply", "--dump-config"]) == 0
+    out = capsys.readouterr().out
+    assert 'cauchy_scale = "auto"' in out and "reassociation_step = 3.0" in out
+    assert main(["register", "A.ply", "B.ply", "--alpha", "1.5", "--dump-config"]) == 0
+    out = capsys.readouterr().out
+    assert 'cauchy_scale = "fixed"' in out and "cauchy_alpha = 1.5" in out
