@@ -144,8 +144,10 @@ class RegistrationConfig:
         covariance)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
-        choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise;
-        1.0 gave 4.6-5.3, slightly pessimistic; see docs/registration.md)
+        choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise
+        with the fixed-association bread and alpha 2; 1.0 gave 4.6-5.3. With the re-matched
+        bread and the residual-based alpha: 4.2-5.2 at 2 mm / 1 cm (~20 % pessimistic
+        pooled), 5.3-7.0 at 3 cm; not re-tuned; see docs/registration.md)
     """
 
     max_correspondence_distance: float = 0.3
