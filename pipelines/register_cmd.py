@@ -61,7 +61,9 @@ def _common(parser, default_method: str) -> None:
                         help="correspondence distance d_max at convergence, m (0.2)")
     parser.add_argument("--initial-corr", type=float, default=None, metavar="D",
                         help="d_max of the first iteration, annealed to --max-corr (none)")
-    parser.add_argument("--alpha", type=float, default=None, help="Cauchy kernel alpha (2.0)")
+    parser.add_argument("--alpha", type=float, default=None,
+                        help="Cauchy kernel alpha, used as given (default: "
+                        "from the residuals, or 2.0 on a voxel-lattice map)")
     parser.add_argument("--semantic-weight", choices=("inside", "outside"), default=None,
                         help="omega inside the Cauchy kernel (eq. (7)) or outside (Parkison)")
     parser.add_argument("--surface-radius", default=None, metavar="auto|none|R",
@@ -144,7 +146,11 @@ def _register(args, source, target, flip=None) -> dict:
             "quantisation_pitch_m": diagnostic.quantisation_pitch,
             "model_error_share": diagnostic.model_error_share,
             "correlation_ratio": diagnostic.correlation_ratio,
+            "reassociation_gain": diagnostic.reassociation_gain,
             "covariance_trusted": bool(diagnostic.trusted)}
+    alpha = getattr(result, "cauchy_alpha", None)
+    if alpha is not None:
+        out["cauchy_alpha"] = float(alpha)
     if flip is not None:
         out["T_left_handed"] = (result.T @ flip).tolist()
     if args.gt:
@@ -170,6 +176,8 @@ def registration_config(args):
                             "max_iterations": "max_iterations"})
     if args.surface_radius is not None:
         update["surface_radius"] = _surface_radius(args.surface_radius)
+    if args.alpha is not None:  # a given alpha is used as given, not re-estimated
+        update["cauchy_scale"] = "fixed"
     return replace(config, **update)
 
 

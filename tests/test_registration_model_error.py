@@ -10,6 +10,9 @@ on the room simulator, with controls that must fail.
 """
 from __future__ import annotations
 
+import functools
+
+import gtsam
 import numpy as np
 import pytest
 from test_registration import make_pair
@@ -73,7 +76,11 @@ def test_quantisation_can_be_given_or_switched_off():
     given = Registration(source, target, RegistrationConfig(quantisation=0.03)).run()
     assert given.diagnostic.quantisation_pitch == 0.03
     assert given.diagnostic.model_error_share > 0.0
-    plain = Registration(source, target, RegistrationConfig(quantisation=None)).run()
+    # with a quantisation term the point noise keeps the fixed-association bread (the
+    # matches' jumps between lattice sites are that term's), so compare with that bread
+    assert given.diagnostic.reassociation_gain == 1.0
+    plain = Registration(source, target, RegistrationConfig(
+        quantisation=None, reassociation_step=None)).run()
     np.testing.assert_allclose(given.covariance - given.diagnostic.model_covariance,
                                plain.covariance, rtol=1e-6, atol=1e-11)
 
@@ -199,34 +206,44 @@ def test_dense_voxel_map_covariance_is_not_overconfident():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="known gap: 3 cm point noise, mean NEES ~10.6 "
-                          "(normal-estimation errors correlated beyond the blocks)")
 def test_sandwich_at_3cm_point_noise_is_consistent():
-    errors, covs = [], []
+    """3 cm point noise on ~13 cm point spacing: nearest neighbours follow the noise, and the
+    re-matched bread (``reassociation_step``) keeps the covariance consistent (measured mean
+    NEES 6.98 on these seeds; 5.33 / 5.50 on seeds 5000 / 7000). Negative controls: the
+    fixed-association bread (10.8, the earlier known gap) and the covariance x 0.1."""
+    errors, covs, fixed_covs = [], [], []
     for seed in range(1000, 1000 + N_TRIALS):
         source, _, target, _, T_gt = make_pair(seed, 2000, 0.03)
-        result = Registration(source, target,
-                              RegistrationConfig(max_correspondence_distance=0.3)).run()
+        reg = Registration(source, target, RegistrationConfig(max_correspondence_distance=0.3))
+        result = reg.run()
+        assert result.converged, result.reason
+        assert result.diagnostic.reassociation_gain > 1.2  # re-matching matters here
         errors.append(pose_error(result.T, T_gt).tangent)
         covs.append(result.covariance)
-    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+        fixed = Registration(source, target, RegistrationConfig(
+            max_correspondence_distance=0.3, reassociation_step=None)).run()
+        np.testing.assert_allclose(fixed.T, result.T)  # the covariance only
+        fixed_covs.append(fixed.covariance)
+    errors, covs = np.array(errors), np.array(covs)
+    check = check_consistency(nees(errors, covs), dof=6)
     assert check.passed, check
+    assert not check_consistency(nees(errors, np.array(fixed_covs)), dof=6).passed
+    assert not check_consistency(nees(errors, covs * 0.1), dof=6).passed
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(strict=True, raises=AssertionError,
-                   reason="known gap: real scan splits, mean NEES ~10.0")
-def test_real_scan_splits_covariance_is_consistent(shared_data):
+@functools.lru_cache(maxsize=1)
+def _scan_splits(octomap: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(errors (30, 6) and covariances (30, 6, 6) in the scan's frame, Cauchy alphas (30,))
+    of ours on the scan splits 100-129 from the "small" offset (the benchmark's protocol)."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
     from benchmarks.registration_real import scan_setting
 
-    errors, covs = [], []
+    errors, covs, alphas = [], [], []
     for seed in range(100, 100 + N_TRIALS):
-        s = scan_setting(shared_data / "octomap", seed)
+        s = scan_setting(Path(octomap), seed)
         metres, degrees, d0 = s.offsets["small"]
         init = s.T_gt @ offset_about_centroid(np.random.default_rng(seed),
                                               s.source.points.mean(axis=0), metres, degrees)
@@ -236,7 +253,36 @@ def test_real_scan_splits_covariance_is_consistent(shared_data):
         result = Registration(s.source.points, s.target.points, config).run(init)
         assert result.converged, result.reason
         assert result.diagnostic.quantisation_pitch is None  # averaged voxels: no lattice
-        errors.append(pose_error(result.T, s.T_gt).tangent)
-        covs.append(result.covariance)
-    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+        # in the scan's (the target's) frame, where an error common to the splits is fixed
+        adjoint = gtsam.Pose3(s.T_gt).AdjointMap()
+        errors.append(adjoint @ pose_error(result.T, s.T_gt).tangent)
+        covs.append(adjoint @ result.covariance @ adjoint.T)
+        alphas.append(result.cauchy_alpha)
+    return np.array(errors), np.array(covs), np.array(alphas)
+
+
+@pytest.mark.slow
+def test_real_scan_splits_covariance_covers_the_variation_between_splits(shared_data):
+    """Real noise: the splits of OctoMap's scan.dat differ by which measured points each
+    cloud gets. About their common mean error the covariance is consistent (measured 6.46
+    over splits 100-189, this test's 30: see the assertion); the reported covariance x 0.1
+    must fail. The Cauchy alpha came from the residuals (no lattice)."""
+    errors, covs, alphas = _scan_splits(str(shared_data / "octomap"))
+    assert np.all(alphas < 1.0)  # residual-based, not the lattice default 2
+    centred = errors - errors.mean(axis=0)
+    values = nees(centred, covs) * N_TRIALS / (N_TRIALS - 1)  # one mean estimated
+    check = check_consistency(values, dof=6)
+    assert check.passed, check
+    assert not check_consistency(nees(centred, covs * 0.1), dof=6).passed
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, raises=AssertionError,
+                   reason="known gap: an error common to every split of the scan (tz +0.26 mm, "
+                          "rx -0.06 mrad over 90 splits; Open3D's estimates share it), which "
+                          "the covariance does not model: mean NEES 8.6 (8.6 / 7.6 / 9.5 on "
+                          "splits 100-129 / 130-159 / 160-189), 2.2 of it that common error")
+def test_real_scan_splits_covariance_is_consistent(shared_data):
+    errors, covs, _ = _scan_splits(str(shared_data / "octomap"))
+    check = check_consistency(nees(errors, covs), dof=6)
     assert check.passed, check

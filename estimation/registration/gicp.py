@@ -44,6 +44,12 @@ from .factors import (
     whitening,
 )
 
+# Cauchy tuning constant for 95 % asymptotic efficiency at Gaussian residuals (Holland and
+# Welsch 1977), in units of the residuals' standard deviation
+CAUCHY_TUNING = 2.3849
+# Smallest residual-based alpha: keeps the weights finite on noise-free data
+MIN_ADAPTIVE_ALPHA = 1e-3
+
 # Variance given to directions the data leave unconstrained (rad^2 or m^2): large enough to
 # show "unknown", finite so that the matrix stays a valid covariance for a PoseGraph.
 UNCONSTRAINED_VARIANCE = 1e4
@@ -62,10 +68,19 @@ class RegistrationConfig:
         once the alignment at the current d_max has converged (``tolerance``) or after
         ``stage_iterations`` (coarse-to-fine stages as in Open3D's multi-scale ICP;
         ``decay = max / initial`` gives exactly two stages)
-    cauchy_alpha : alpha of the Cauchy kernel, in units of the Mahalanobis distance (with the
-        (epsilon, 1, 1) covariances: the weight halves at a normal offset of about
+    cauchy_alpha : alpha of the Cauchy kernel where it is not estimated from the residuals
+        (on a voxel lattice, or ``cauchy_scale="fixed"``), in units of the Mahalanobis
+        distance (with the (epsilon, 1, 1) covariances: the weight halves at a normal offset
+        of about
         ``alpha * sqrt(2 epsilon)``, 9 cm for alpha = 2; alpha = 1 measured ~10 % less
         accurate on the room benchmark, for Open3D's per-row Cauchy kernel as well)
+    cauchy_scale : "auto" (default): where neither cloud sits on a voxel lattice, alpha is
+        re-estimated every iteration from the residuals, ``CAUCHY_TUNING`` (2.385, the
+        Cauchy kernel's 95 %-efficiency constant) times their robust standard deviation
+        (1.4826 x the median whitened residual norm); on a lattice (an octree map, whose
+        few-cm quantisation biases the residuals) ``cauchy_alpha``. "fixed":
+        ``cauchy_alpha`` always. (Real scan splits: 0.77x Open3D's error with "auto",
+        1.12x with alpha 2; docs/registration.md)
     k_neighbours, epsilon : per-point covariance estimation (eigenvalues -> (epsilon, 1, 1))
     max_iterations : outer correspondence/EM iterations at the final correspondence distance
         (the stages before it are capped by ``stage_iterations`` each, so a multi-stage
@@ -118,10 +133,21 @@ class RegistrationConfig:
     trust_ratio : the covariance is flagged untrusted when the cluster sandwich with blocks
         four times wider exceeds the reported covariance by more than this (mean variance
         ratio; :class:`CovarianceDiagnostic`)
+    reassociation_step : the sandwich's bread for the point noise is the derivative of the
+        score sum with the correspondences re-matched at poses moved by this many standard
+        deviations (of the fixed-association sandwich) along each axis
+        (:meth:`Registration.reassociation_hessian`): nearest neighbours follow the noise, so
+        the estimate responds less to the data than the fixed-association Hessian says
+        (3 cm point noise: mean NEES 10.6 -> 7.0; docs/registration.md). Used where no
+        quantisation term is (on a voxel lattice the matches jump between lattice sites,
+        which that term covers). None = the fixed-association Hessian (the earlier
+        covariance)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
-        choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise;
-        1.0 gave 4.6-5.3, slightly pessimistic; see docs/registration.md)
+        choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise
+        with the fixed-association bread and alpha 2; 1.0 gave 4.6-5.3. With the re-matched
+        bread and the residual-based alpha: 4.2-5.2 at 2 mm / 1 cm (~20 % pessimistic
+        pooled), 5.3-7.0 at 3 cm; not re-tuned; see docs/registration.md)
     """
 
     max_correspondence_distance: float = 0.3
@@ -130,6 +156,7 @@ class RegistrationConfig:
     anneal: str = "convergence"
     stage_iterations: int = 30
     cauchy_alpha: float = 2.0
+    cauchy_scale: str = "auto"
     k_neighbours: int = 20
     epsilon: float = 1e-3
     max_iterations: int = 60
@@ -151,6 +178,7 @@ class RegistrationConfig:
     surface_min_points: int = 6
     quantisation: float | str | None = "auto"
     trust_ratio: float = 4.0
+    reassociation_step: float | None = 3.0
 
     def __post_init__(self):
         for name in ("max_correspondence_distance", "cauchy_alpha"):
@@ -161,6 +189,9 @@ class RegistrationConfig:
                 not self.initial_correspondence_distance > 0:  # NaN fails too
             raise EstimationError(f"initial_correspondence_distance must be a positive number "
                                   f"or None, got {self.initial_correspondence_distance!r}")
+        if self.cauchy_scale not in ("auto", "fixed"):
+            raise EstimationError(
+                f"cauchy_scale must be 'auto' or 'fixed', got {self.cauchy_scale!r}")
         if self.anneal not in ("iteration", "convergence"):
             raise EstimationError(
                 f"anneal must be 'iteration' or 'convergence', got {self.anneal!r}")
@@ -182,6 +213,11 @@ class RegistrationConfig:
                 isinstance(self.quantisation, (int, float)) and self.quantisation > 0):
             raise EstimationError(f"quantisation must be positive, 'auto' or None, "
                                   f"got {self.quantisation!r}")
+        if self.reassociation_step is not None and not (
+                isinstance(self.reassociation_step, (int, float))
+                and math.isfinite(self.reassociation_step) and self.reassociation_step > 0):
+            raise EstimationError(f"reassociation_step must be a positive finite number or "
+                                  f"None, got {self.reassociation_step!r}")
         if self.surface_radius is not None and self.surface_radius != "auto" and not (
                 isinstance(self.surface_radius, (int, float)) and self.surface_radius > 0):
             raise EstimationError(f"surface_radius must be positive, 'auto' or None, "
@@ -204,6 +240,11 @@ class CovarianceDiagnostic:
     trusted : correlation_ratio <= RegistrationConfig.trust_ratio
     model_covariance : (6, 6) the quantisation part of the reported covariance (zeros
         without a lattice); ``covariance - model_covariance`` is the point-noise sandwich
+    reassociation_gain : mean variance ratio, trace(P_fixed^-1 P_noise) / 6, of the
+        point-noise sandwich with the re-matched bread against the fixed-association one
+        (1.0 = the correspondences do not follow the noise; measured ~1.0 at 2 mm i.i.d.
+        noise, ~1.8 at 3 cm; 1.0 when ``reassociation_step`` is None or a quantisation term
+        is in use)
     """
 
     quantisation_pitch: float | None
@@ -211,6 +252,7 @@ class CovarianceDiagnostic:
     correlation_ratio: float
     trusted: bool
     model_covariance: np.ndarray
+    reassociation_gain: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -233,6 +275,8 @@ class RegistrationResult:
     method : "gicp" or "semantic"
     time_s : wall time
     diagnostic : :class:`CovarianceDiagnostic` (None when the registration failed)
+    cauchy_alpha : the Cauchy kernel's alpha at the solution (``cauchy_scale="auto"``: from
+        the residuals off a voxel lattice; else ``RegistrationConfig.cauchy_alpha``)
     """
 
     T: np.ndarray
@@ -248,6 +292,7 @@ class RegistrationResult:
     method: str = "gicp"
     time_s: float = 0.0
     diagnostic: CovarianceDiagnostic | None = None
+    cauchy_alpha: float = float("nan")
 
     @property
     def pose(self) -> gtsam.Pose3:
@@ -363,6 +408,7 @@ class Registration:
         self._class_cache: dict = {}
         self._class_cache_owner: NeighbourCache | None = None
         self._sigma: float | None = None  # Semantic-ICP's EM residual sigma, reset by run()
+        self._alpha: float = self.config.cauchy_alpha  # the kernel's alpha in use (run())
 
     @staticmethod
     def _probs(probs: np.ndarray, n: int, what: str) -> np.ndarray:
@@ -459,7 +505,7 @@ class Registration:
         cov = np.eye(6) * UNCONSTRAINED_VARIANCE
         return RegistrationResult(T, cov, np.zeros((6, 6)), iterations, 0, 0.0, float("nan"),
                                   False, reason, tuple(cost_log), self.method,
-                                  time.perf_counter() - start)
+                                  time.perf_counter() - start, None, self._alpha)
 
     def correspondences(self, T: np.ndarray, d_max: float,
                         rows: np.ndarray | None = None) -> Correspondences:
@@ -518,8 +564,19 @@ class Registration:
                                     1e-4))
         return corr
 
+    @property
+    def adaptive_scale(self) -> bool:
+        """True when alpha follows the residuals (``cauchy_scale="auto"``, no lattice)."""
+        return self.config.cauchy_scale == "auto" and self._lattice is None
+
+    def _update_alpha(self, e: np.ndarray) -> None:
+        """Set the Cauchy alpha from the whitened residuals ``e`` (squared norms) if adaptive."""
+        if self.adaptive_scale and len(e):
+            sigma = 1.4826 * float(np.median(np.sqrt(e)))
+            self._alpha = max(CAUCHY_TUNING * sigma, MIN_ADAPTIVE_ALPHA)
+
     def _weights(self, e: np.ndarray, omega: np.ndarray) -> np.ndarray:
-        alpha = self.config.cauchy_alpha
+        alpha = self._alpha
         if self.semantic and self.config.semantic_weight == "inside":
             # d/dxi rho(omega e) = omega rho'(omega e) de/dxi  (eq. (7))
             return omega * cauchy_weight(omega * e, alpha)
@@ -531,13 +588,13 @@ class Registration:
         The IRLS matrix sum w_k J^T J drops the rho'' term; for the Cauchy kernel rho'' < 0, so
         dropping it overstates the information exactly when residuals are large (high noise).
         """
-        alpha = self.config.cauchy_alpha
+        alpha = self._alpha
         if self.semantic and self.config.semantic_weight == "inside":
             return -2.0 * omega ** 2 * cauchy_weight(omega * e, alpha) ** 2 / alpha ** 2
         return -2.0 * omega * cauchy_weight(e, alpha) ** 2 / alpha ** 2
 
     def _cost(self, e: np.ndarray, omega: np.ndarray) -> float:
-        alpha = self.config.cauchy_alpha
+        alpha = self._alpha
         if self.semantic and self.config.semantic_weight == "inside":
             return float(np.sum(cauchy_loss(omega * e, alpha)))
         return float(np.sum(omega * cauchy_loss(e, alpha)))
@@ -548,6 +605,7 @@ class Registration:
         start = time.perf_counter()
         T = _as_transform(init)
         self._sigma = None
+        self._alpha = cfg.cauchy_alpha
         if len(self.source) < cfg.min_inliers or len(self.target) < cfg.min_inliers:
             return self._failed(T, f"too few points: source {len(self.source)}, target "
                                    f"{len(self.target)} (need {cfg.min_inliers})", start)
@@ -590,11 +648,12 @@ class Registration:
             Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
                            T[:3, :3])
             e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
+            self._update_alpha(e)
             cost_log.append(self._cost(e, corr.weights))
             if cfg.factors == "batched":
                 factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
             else:  # GTSAM applies the Cauchy kernel itself, one factor per correspondence
-                factor = robust_factors(key, src, tgt, Ut, corr.weights, cfg.cauchy_alpha,
+                factor = robust_factors(key, src, tgt, Ut, corr.weights, self._alpha,
                                         cfg.semantic_weight if self.semantic else "outside")
             T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations, key)
             step = np.linalg.norm(gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new))))
@@ -659,6 +718,7 @@ class Registration:
             return self._failed(T, "too few correspondences at the solution",
                                 start, iterations, cost_log)
         corr, src, tgt, w = sol.corr, sol.src, sol.tgt, sol.w
+        diagnostic = None
         # M-estimator sandwich A^-1 B A^-1: A the exact Hessian of the robust cost, B the
         # outer product of the scores summed per spatial block (cluster-robust: neighbouring
         # residuals share target points and the neighbourhoods their covariances came from)
@@ -673,24 +733,41 @@ class Registration:
         sandwich = cfg.covariance == "sandwich"
         scale = self._scale(src)
         H_normal = self._normal_information(T, src, sol.normals, w)
-        cov, unconstrained = covariance_from_information(
-            sol.A if sandwich else sol.H, B + B_model if sandwich else None, scale,
-            H_normal, cfg.degeneracy_ratio)
-        diagnostic = None
-        if sandwich:
+
+        def information_to_covariance(bread, meat):
+            return covariance_from_information(bread, meat, scale, H_normal,
+                                               cfg.degeneracy_ratio)
+
+        if not sandwich:
+            cov, unconstrained = information_to_covariance(sol.H, None)
+        else:
+            cov_noise, unconstrained = information_to_covariance(sol.A, B)
+            A_noise, gain = sol.A, 1.0
+            if cfg.reassociation_step is not None and not unconstrained and pitch is None:
+                # the point noise moves which neighbours are matched. (On a voxel lattice the
+                # matches jump between lattice sites: that is the quantisation, which its own
+                # term covers, through the fixed-association bread: a plane's common offset
+                # moves the plane as a whole and keeps its matches.)
+                A_noise = self.reassociation_hessian(T, d_max, sol, cov_noise)
+                fixed = cov_noise
+                # the bread's differences are noisy and may turn the ellipsoid a little:
+                # re-matching never makes a direction more certain, so keep the larger
+                cov_noise = loewner_max(fixed, information_to_covariance(A_noise, B)[0])
+                gain = float(np.trace(np.linalg.solve(fixed, cov_noise)) / 6.0)
+            cov_model = np.zeros((6, 6))
+            if pitch is not None:
+                cov_model, _ = information_to_covariance(sol.A, B_model)
+            # (unconstrained directions: one UNCONSTRAINED_VARIANCE, not one per part)
+            cov = cov_noise + cov_model if not unconstrained else \
+                information_to_covariance(sol.A, B + B_model)[0]
             wide = cluster_sums(tgt, sol.scores, 4.0 * block)
-            cov_wide, _ = covariance_from_information(sol.A, wide.T @ wide + B_model, scale,
-                                                      H_normal, cfg.degeneracy_ratio)
-            cov_model, _ = covariance_from_information(sol.A, B_model, scale, H_normal,
-                                                       cfg.degeneracy_ratio)
+            cov_wide = information_to_covariance(A_noise, wide.T @ wide)[0] + cov_model
             S2 = np.array([scale ** 2] * 3 + [1.0] * 3)
             share = float(np.trace(cov_model * S2[:, None]) / np.trace(cov * S2[:, None])) \
                 if pitch is not None and not unconstrained else 0.0
             ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
-            if pitch is None:
-                cov_model = np.zeros((6, 6))
             diagnostic = CovarianceDiagnostic(pitch, share, ratio, ratio <= cfg.trust_ratio,
-                                              cov_model)
+                                              cov_model, gain)
         inliers = len(corr)
         if unconstrained:
             converged = False
@@ -699,7 +776,58 @@ class Registration:
         return RegistrationResult(
             T, cov, sol.H, iterations, inliers, inliers / len(self.source),
             float(np.sqrt(np.mean(dist ** 2))), converged, reason, tuple(cost_log),
-            self.method, time.perf_counter() - start, diagnostic)
+            self.method, time.perf_counter() - start, diagnostic, self._alpha)
+
+    def reassociation_hessian(self, T: np.ndarray, d_max: float, sol: SolutionTerms,
+                              cov: np.ndarray) -> np.ndarray:
+        """Return the bread of the point-noise sandwich: the score sum's derivative with the
+        correspondences re-matched.
+
+        The Hessian ``A`` holds the correspondences fixed. The estimate is the root of the
+        score sum ``F(T) = sum_k w_k J_k^T r_k`` with the correspondences (nearest neighbours,
+        Semantic-ICP's E-step) chosen at ``T`` itself, and where the point noise is of the
+        order of the point spacing the neighbours follow the noise: a pose change moves the
+        scores less than ``A`` says, so the estimate responds more to the noise. ``F`` is
+        piecewise smooth in ``T``, so its derivative is taken by forward differences over
+        ``reassociation_step`` standard deviations of the fixed-association covariance
+        ``cov`` per axis (the scale at which the estimate actually varies). The result is
+        symmetrised, and its eigenvalues relative to ``A`` are limited to [0.25, 1]:
+        re-matching to nearer neighbours lowers the cost (the matched cost is the lower
+        envelope of the fixed-association costs), so it cannot add curvature, and the lower
+        limit bounds the inflation (16x in variance) where the differences are noisy.
+        """
+        A = sol.A
+        steps = self.config.reassociation_step * np.sqrt(np.maximum(np.diag(cov), 1e-24))
+        F0 = sol.scores.sum(axis=0)
+        sigma = self._sigma  # Semantic-ICP's E-step re-estimates it; keep the solution's
+        D = np.empty((6, 6))
+        for i in range(6):
+            xi = np.zeros(6)
+            xi[i] = steps[i]
+            T_i = T @ gtsam.Pose3.Expmap(xi).matrix()
+            self._sigma = sigma
+            corr = self.correspondences(T_i, d_max)
+            if len(corr) < self.config.min_inliers:
+                self._sigma = sigma
+                return A
+            src, tgt = self.matched_points(corr)
+            Ut = whitening(self.target_cov[corr.target_idx],
+                           self.source_cov[corr.source_idx], T_i[:3, :3])
+            terms = gicp_terms(T_i, src, tgt, Ut)
+            w = self._weights(terms.mahalanobis, corr.weights)
+            F = np.einsum("m,mij,mi->j", w, terms.jacobians, terms.residuals)
+            D[:, i] = (F - F0) / steps[i]
+        self._sigma = sigma
+        # relative to A: A = L L^T, S = L^-1 D L^-T, eigenvalues limited to [0.25, 1]
+        lam_A, V_A = np.linalg.eigh(A)
+        if lam_A.min() <= 0.0:
+            return A
+        L = V_A * np.sqrt(lam_A)
+        L_inv = (V_A / np.sqrt(lam_A)).T
+        S = L_inv @ (0.5 * (D + D.T)) @ L_inv.T
+        lam, U = np.linalg.eigh(0.5 * (S + S.T))
+        lam = np.clip(lam, 0.25, 1.0)
+        return L @ (U * lam) @ U.T @ L.T
 
     @property
     def quantisation_pitch(self) -> float | None:
@@ -815,6 +943,18 @@ def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndar
     out = np.zeros((int(block.max()) + 1, values.shape[1]))
     np.add.at(out, block.reshape(-1), values)
     return out
+
+
+def loewner_max(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """Return the smallest covariance R with R >= P and R >= Q along the directions in which
+    the two are simultaneously diagonal (the generalised eigenvectors of (Q, P)): each
+    eigenvalue of P^-1 Q is raised to at least 1."""
+    lam, V = np.linalg.eigh(0.5 * (P + P.T))
+    W = V / np.sqrt(np.maximum(lam, 1e-300))  # W^T P W = I
+    mu, U = np.linalg.eigh(W.T @ (0.5 * (Q + Q.T)) @ W)
+    W_inv = np.linalg.inv(W)
+    R = W_inv.T @ (U * np.maximum(mu, 1.0)) @ U.T @ W_inv
+    return 0.5 * (R + R.T)
 
 
 def covariance_from_information(H: np.ndarray, B: np.ndarray | None, scale: float,

@@ -1,0 +1,140 @@
+"""The re-matched bread of the registration covariance and the residual-based Cauchy scale.
+
+The Monte Carlo checks are in tests/test_registration_covariance.py and
+tests/test_registration_model_error.py; these test the pieces.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_registration import make_pair, one_hot
+from test_registration_model_error import voxel_map_pair
+
+from estimation.errors import EstimationError
+from estimation.registration import Registration, RegistrationConfig
+from estimation.registration.gicp import CAUCHY_TUNING, loewner_max
+
+
+def _solution(reg: Registration, result):
+    d_max = reg.config.max_correspondence_distance
+    return reg.solution_terms(result.T, d_max), d_max
+
+
+def test_reassociation_bread_is_the_hessian_when_matches_cannot_change():
+    # the same points in both clouds: every point is its own nearest neighbour at distance 0,
+    # and steps of 3 sigma (sub-micrometre here) cannot change that
+    # (a fixed alpha: with no residuals at all a residual-based one would be tiny)
+    source, _, _, _, _ = make_pair(11, 1500, 0.005)
+    reg = Registration(source, source.copy(), RegistrationConfig(cauchy_scale="fixed"))
+    result = reg.run()
+    sol, d_max = _solution(reg, result)
+    bread = reg.reassociation_hessian(result.T, d_max, sol, np.eye(6) * 1e-10)
+    np.testing.assert_allclose(bread, sol.A, rtol=1e-4, atol=1e-6 * np.abs(sol.A).max())
+
+
+@pytest.mark.parametrize("sigma, low, high", [(0.002, 1.0, 1.15), (0.03, 1.3, 4.0)])
+def test_reassociation_gain_grows_with_the_noise(sigma, low, high):
+    # nearest neighbours follow noise of the order of the point spacing (~13 cm here)
+    gains = []
+    for seed in range(5):
+        source, _, target, _, _ = make_pair(2000 + seed, 2000, sigma)
+        result = Registration(source, target, RegistrationConfig()).run()
+        assert result.converged
+        gains.append(result.diagnostic.reassociation_gain)
+    assert low <= np.median(gains) <= high, gains
+
+
+def test_reassociation_bread_is_bounded_by_the_hessian():
+    # eigenvalues relative to A within [0.25, 1]: re-matching cannot add curvature
+    source, _, target, _, _ = make_pair(12, 2000, 0.03)
+    reg = Registration(source, target, RegistrationConfig())
+    result = reg.run()
+    sol, d_max = _solution(reg, result)
+    bread = reg.reassociation_hessian(result.T, d_max, sol, result.covariance)
+    L_inv = np.linalg.inv(np.linalg.cholesky(sol.A))
+    relative = np.linalg.eigvalsh(L_inv @ bread @ L_inv.T)
+    assert relative.min() >= 0.25 - 1e-9 and relative.max() <= 1.0 + 1e-9
+    assert relative.min() < 0.95  # and it did change something at 3 cm
+
+
+def test_fixed_association_option_gives_the_earlier_covariance():
+    source, _, target, _, _ = make_pair(13, 2000, 0.03)
+    new = Registration(source, target, RegistrationConfig()).run()
+    old = Registration(source, target, RegistrationConfig(reassociation_step=None)).run()
+    np.testing.assert_allclose(new.T, old.T)
+    assert old.diagnostic.reassociation_gain == 1.0
+    # the re-matched bread only widens: no direction gets more certain
+    ratio = np.linalg.eigvals(np.linalg.solve(old.covariance, new.covariance)).real
+    assert ratio.max() > 1.2 and ratio.min() > 1.0 - 1e-6
+
+
+def test_semantic_icp_keeps_its_em_sigma_through_the_bread():
+    source, labels_s, target, labels_t, _ = make_pair(14, 1500, 0.01)
+    reg = Registration(source, target, RegistrationConfig(),
+                       one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9))
+    result = reg.run()
+    sol, d_max = _solution(reg, result)  # (its E-step sets the sigma of the solution)
+    sigma = reg._sigma
+    reg.reassociation_hessian(result.T, d_max, sol, result.covariance)
+    assert reg._sigma == sigma
+
+
+def test_cauchy_alpha_follows_the_residuals_off_a_lattice():
+    source, _, target, _, _ = make_pair(15, 2000, 0.01)
+    reg = Registration(source, target, RegistrationConfig())
+    result = reg.run()
+    sol, _ = _solution(reg, result)
+    # the last iteration's residuals set it; at convergence they are the solution's
+    e = np.sum(((np.linalg.cholesky(np.linalg.inv(
+        reg.target_cov[sol.corr.target_idx] + result.T[:3, :3] @ reg.source_cov[
+            sol.corr.source_idx] @ result.T[:3, :3].T)).transpose(0, 2, 1)) @ (
+        sol.tgt - (sol.src @ result.T[:3, :3].T + result.T[:3, 3]))[:, :, None]) ** 2,
+        axis=(1, 2))
+    expected = CAUCHY_TUNING * 1.4826 * np.median(np.sqrt(e))
+    assert result.cauchy_alpha == pytest.approx(expected, rel=0.02)
+    assert 0.2 < result.cauchy_alpha < 1.0
+    fixed = Registration(source, target, RegistrationConfig(cauchy_scale="fixed")).run()
+    assert fixed.cauchy_alpha == 2.0
+    given = Registration(source, target, RegistrationConfig(cauchy_scale="fixed",
+                                                            cauchy_alpha=0.7)).run()
+    assert given.cauchy_alpha == 0.7
+
+
+def test_cauchy_alpha_and_the_fixed_bread_stay_on_a_voxel_lattice():
+    # the matches jump between lattice sites there: the quantisation term's model
+    source, target, _ = voxel_map_pair(3000, n_source=3000, n_dense=30000)
+    result = Registration(source, target, RegistrationConfig()).run()
+    assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+    assert result.cauchy_alpha == 2.0
+    assert result.diagnostic.reassociation_gain == 1.0
+    off = Registration(source, target, RegistrationConfig(quantisation=None)).run()
+    assert off.diagnostic.reassociation_gain > 1.0  # no quantisation term: re-matched
+
+
+def test_bad_scale_options_are_rejected():
+    for bad in (0.0, -1.0, float("nan"), float("inf"), "3"):
+        with pytest.raises(EstimationError, match="reassociation_step"):
+            RegistrationConfig(reassociation_step=bad)
+    with pytest.raises(EstimationError, match="cauchy_scale"):
+        RegistrationConfig(cauchy_scale="adaptive")
+
+
+def test_loewner_max_dominates_both(rng):
+    X, Y = rng.normal(size=(6, 6)), rng.normal(size=(6, 6))
+    P, Q = X @ X.T + 0.1 * np.eye(6), Y @ Y.T + 0.1 * np.eye(6)
+    R = loewner_max(P, Q)
+    assert np.linalg.eigvalsh(R - P).min() > -1e-9 * np.abs(R).max()
+    assert np.linalg.eigvalsh(R - Q).min() > -1e-9 * np.abs(R).max()
+    np.testing.assert_allclose(loewner_max(P, 0.5 * P), P, rtol=1e-9)
+    np.testing.assert_allclose(loewner_max(P, 2.0 * P), 2.0 * P, rtol=1e-9)
+
+
+def test_cli_alpha_is_used_as_given(capsys):
+    from pipelines.cli import main
+
+    assert main(["register", "A.ply", "B.ply", "--dump-config"]) == 0
+    out = capsys.readouterr().out
+    assert 'cauchy_scale = "auto"' in out and "reassociation_step = 3.0" in out
+    assert main(["register", "A.ply", "B.ply", "--alpha", "1.5", "--dump-config"]) == 0
+    out = capsys.readouterr().out
+    assert 'cauchy_scale = "fixed"' in out and "cauchy_alpha = 1.5" in out
