@@ -223,8 +223,9 @@ class OdometryConfig:
         hybrid leans on the photometric term (scaling the image contrast by 0.3 or 3 moves its
         ICL-NUIM ATE from 0.57 to 1.2-1.6 cm) and drifts where the image is flat; the legacy
         hybrid weighs the depth residual about 30:1 (Open3D's LAMBDA_HYBRID_DEPTH = 0.968) and
-        keeps its accuracy there (ICL-NUIM with its texture blurred away, docs/vp_ekf.md). Only with ``pnp_init`` and the tensor
-        backend; ``OdometryResult.backend`` says which ran.
+        keeps its accuracy there (ICL-NUIM with its texture blurred away, docs/vp_ekf.md).
+        Only with ``pnp_init`` and the tensor backend; ``OdometryResult.backend`` says which
+        ran.
     """
 
     backend: str = "tensor"
