@@ -618,6 +618,37 @@ def _mark_rays_grid(pts, ox, oy, oz, ok0, res, max_range, i0, pool, bcodes, coun
     return n
 
 
+@njit(cache=True, nogil=True)
+def transform_points_f32(points, q, t):
+    """graph2tree's point transform: ``q * (0, p) * conj(q) + t`` in float32, each product
+    and sum rounded in liboctomap's term order (``Quaternion::operator*``), per point.
+
+    ``points`` (N, 3) float32, ``q`` (4,) float32 (w, x, y, z), ``t`` (3,) float32. The same
+    arithmetic as :func:`mapping.fusion._rotate` on arrays (the reference), without its
+    temporaries.
+    """
+    n = points.shape[0]
+    out = np.empty((n, 3), np.float32)
+    au, ax, ay, az = q[0], q[1], q[2], q[3]
+    iu, ix, iy, iz = q[0], -q[1], -q[2], -q[3]
+    zero = np.float32(0.0)
+    for i in range(n):
+        bx, by, bz = points[i, 0], points[i, 1], points[i, 2]
+        # qv = q * (0, p)
+        u = (((au * zero) - (ax * bx)) - (ay * by)) - (az * bz)
+        x = (((ay * bz) - (by * az)) + (au * bx)) + (zero * ax)
+        y = (((az * bx) - (bz * ax)) + (au * by)) + (zero * ay)
+        z = (((ax * by) - (bx * ay)) + (au * bz)) + (zero * az)
+        # r = qv * conj(q); only the vector part
+        rx = (((y * iz) - (iy * z)) + (u * ix)) + (iu * x)
+        ry = (((z * ix) - (iz * x)) + (u * iy)) + (iu * y)
+        rz = (((x * iy) - (ix * y)) + (u * iz)) + (iu * z)
+        out[i, 0] = rx + t[0]
+        out[i, 1] = ry + t[1]
+        out[i, 2] = rz + t[2]
+    return out
+
+
 # direction buckets of sort_rays: per cube face, _DIR_BINS x 4 _DIR_BINS cells
 _DIR_BINS = 32
 
