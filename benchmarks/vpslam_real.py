@@ -172,11 +172,11 @@ def flatten_texture(seq: Path, out: Path, sigma: float, contrast: float) -> Path
 
     import cv2
 
+    from perception.rgbd import read_timestamp_list
+
     shutil.copytree(seq, out)
-    for line in (out / "rgb.txt").read_text().splitlines():
-        if not line.strip() or line.startswith("#"):
-            continue
-        path = out / line.split()[1]
+    for name in read_timestamp_list(out / "rgb.txt")[1]:
+        path = out / name
         image = cv2.imread(str(path), cv2.IMREAD_COLOR).astype(np.float32)
         blurred = cv2.GaussianBlur(image, (0, 0), sigma)
         flat = blurred.mean() + contrast * (blurred - blurred.mean())

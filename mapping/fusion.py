@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .octree import OcTree
+from .octree import OcTree, _k
 
 f32 = np.float32
 
@@ -54,7 +54,7 @@ def transform_points_octomap(points, t, q_wxyz) -> tuple[np.ndarray, np.ndarray]
     t = tuple(f32(c) for c in np.asarray(t, dtype=np.float64).reshape(3))
     q = tuple(f32(c) for c in np.asarray(q_wxyz, dtype=np.float64).reshape(4))
     # the points in one kernel pass (the same float32 operations as _rotate, in order)
-    world = _kernels().transform_points_f32(p, np.array(q, np.float32), np.array(t, np.float32))
+    world = _k().transform_points_f32(p, np.array(q, np.float32), np.array(t, np.float32))
     with np.errstate(all="ignore"):
         # sensor origin: frame_origin.inv().transform(t), then frame_origin.transform(that)
         qinv = _normalized((q[0], -q[1], -q[2], -q[3]))
@@ -67,24 +67,6 @@ def transform_points_octomap(points, t, q_wxyz) -> tuple[np.ndarray, np.ndarray]
         origin = np.array([f32(o[0][0] + t[0]), f32(o[1][0] + t[1]), f32(o[2][0] + t[2])],
                           np.float32)
     return world, origin
-
-
-def transform_points_reference(points, t, q_wxyz) -> np.ndarray:
-    """The points of :func:`transform_points_octomap` computed with numpy's float32 arrays
-    (the reference the kernel is tested against)."""
-    p = np.asarray(points, dtype=np.float32).reshape(-1, 3)
-    t = tuple(f32(c) for c in np.asarray(t, dtype=np.float64).reshape(3))
-    q = tuple(f32(c) for c in np.asarray(q_wxyz, dtype=np.float64).reshape(4))
-    with np.errstate(all="ignore"):
-        r = _rotate(q, (p[:, 0], p[:, 1], p[:, 2]))
-        world = np.stack([f32(r[0] + t[0]), f32(r[1] + t[1]), f32(r[2] + t[2])], axis=1)
-    return world.astype(np.float32)
-
-
-def _kernels():
-    from estimation.aot import kernels
-
-    return kernels("mapping._kernels")
 
 
 def _pose_to_t_q(pose) -> tuple[np.ndarray, np.ndarray]:

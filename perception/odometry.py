@@ -480,23 +480,20 @@ def _dense_legacy(prev: RgbdFrame, curr: RgbdFrame, intr: CameraIntrinsics,
                   T_init: gtsam.Pose3, config: OdometryConfig, factor: int = 1):
     """(converged, T_prev_curr 4x4, information 6x6) from Open3D's legacy hybrid odometry.
 
-    ``factor`` > 1 runs it on images shrunk by that factor (colour INTER_AREA, depth
-    INTER_NEAREST), dropping as many trailing (finest) pyramid levels of
-    ``config.iterations``; the information matrix then counts the shrunk image's pixels."""
-    import cv2
+    ``factor`` > 1 runs it on images shrunk by that factor (``perception.rgbd.resize_frame``),
+    dropping as many trailing (finest) pyramid levels of ``config.iterations``; the
+    information matrix then counts the shrunk image's pixels."""
     import open3d as o3d
+
+    from perception.rgbd import resize_frame
 
     size = (intr.width // factor, intr.height // factor)
 
     def rgbd_image(frame: RgbdFrame):
+        frame = resize_frame(frame, *size)
         depth = np.where(np.isfinite(frame.depth_m), frame.depth_m, 0).astype(np.float32)
-        rgb = np.ascontiguousarray(frame.rgb)
-        if factor > 1:
-            rgb = np.ascontiguousarray(cv2.resize(rgb, size, interpolation=cv2.INTER_AREA))
-            depth = np.ascontiguousarray(cv2.resize(depth, size,
-                                                    interpolation=cv2.INTER_NEAREST))
         return o3d.geometry.RGBDImage.create_from_color_and_depth(
-            o3d.geometry.Image(rgb), o3d.geometry.Image(depth),
+            o3d.geometry.Image(np.ascontiguousarray(frame.rgb)), o3d.geometry.Image(depth),
             depth_scale=1.0, depth_trunc=config.depth_max, convert_rgb_to_intensity=True)
 
     levels = [int(n) for n in config.iterations]

@@ -410,7 +410,18 @@ def test_point_transform_kernel_equals_the_float32_reference(kernel_backend):
     """graph2tree's float32 quaternion transform: the kernel gives the numpy reference's bits
     (every product and sum rounded in liboctomap's order; no fused multiply-add), for random
     poses and points, signed zeros and large coordinates included."""
-    from mapping.fusion import transform_points_octomap, transform_points_reference
+    from mapping.fusion import _rotate, transform_points_octomap
+
+    f32 = np.float32
+
+    def reference(points, t, q):  # numpy float32 arrays, one operation at a time
+        p = np.asarray(points, dtype=np.float32)
+        t = tuple(f32(c) for c in t)
+        q = tuple(f32(c) for c in q)
+        with np.errstate(all="ignore"):
+            r = _rotate(q, (p[:, 0], p[:, 1], p[:, 2]))
+            return np.stack([f32(r[0] + t[0]), f32(r[1] + t[1]), f32(r[2] + t[2])],
+                            axis=1).astype(np.float32)
 
     rng = np.random.default_rng(7)
     for _ in range(20):
@@ -422,9 +433,12 @@ def test_point_transform_kernel_equals_the_float32_reference(kernel_backend):
                               [[0.0, -0.0, 0.0], [-0.0, 0.0, -0.0], [1e-30, -1e-30, 3.0]]])
         pts = pts.astype(np.float32)
         world, _ = transform_points_octomap(pts, t, q)
-        ref = transform_points_reference(pts, t, q)
+        ref = reference(pts, t, q)
         assert world.dtype == np.float32 and world.shape == ref.shape
         assert world.tobytes() == ref.tobytes()
+    # points in a read-only buffer run compiled too (the fixture fails on a JIT fallback)
+    pts.setflags(write=False)
+    assert transform_points_octomap(pts, t, q)[0].tobytes() == reference(pts, t, q).tobytes()
 
 
 def test_insert_ray_equals_per_key_updates_and_cuts_at_max_range():

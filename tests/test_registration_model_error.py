@@ -93,6 +93,38 @@ def _mean_nees(errors, covs) -> float:
     return float(np.mean(nees(np.array(errors), np.array(covs))))
 
 
+def _room_view_trials(quantisation_pitch=None, **room):
+    """(errors, covariances, model terms) of Semantic-ICP from each headset view of rooms
+    100-107 (``RoomConfig(seed, **room)``) to the robot's map, from a random start 0.2 m /
+    5 deg around the truth; ``quantisation_pitch``: the pitch each result must report."""
+    from perception.simulation.room import (
+        VIEWPOINTS,
+        RoomConfig,
+        build_room,
+        headset_cloud,
+        robot_semantic_map,
+    )
+    errors, covs, model = [], [], []
+    for seed in range(100, 108):
+        cfg = RoomConfig(seed=seed, **room)
+        built = build_room(cfg)
+        target = robot_semantic_map(built, cfg)
+        for k, view in enumerate(sorted(VIEWPOINTS)):
+            source, T_gt = headset_cloud(built, view, cfg)
+            rng = np.random.default_rng(seed * 10 + k)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
+            result = Registration(source.points, target.points,
+                                  RegistrationConfig(max_correspondence_distance=0.2),
+                                  source.probs, target.probs).run(init)
+            assert result.converged, result.reason
+            if quantisation_pitch is not None:
+                assert result.diagnostic.quantisation_pitch == pytest.approx(quantisation_pitch)
+            errors.append(pose_error(result.T, T_gt).tangent)
+            covs.append(result.covariance)
+            model.append(result.diagnostic.model_covariance)
+    return np.array(errors), np.array(covs), np.array(model)
+
+
 @pytest.mark.slow
 def test_room_views_covariance_is_consistent():
     """The demo's calibration: each headset view to the robot's 3 cm octree map.
@@ -103,35 +135,11 @@ def test_room_views_covariance_is_consistent():
     NEES (rooms 100-107): 6.24 with the quantisation term, 26.8k without it (the
     point-noise sandwich alone); held-out rooms 2-9: 6.41.
     """
-    from perception.simulation.room import (
-        VIEWPOINTS,
-        RoomConfig,
-        build_room,
-        headset_cloud,
-        robot_semantic_map,
-    )
-    errors, covs, model = [], [], []
-    for seed in range(100, 108):
-        cfg = RoomConfig(seed=seed)
-        room = build_room(cfg)
-        target = robot_semantic_map(room, cfg)
-        for k, view in enumerate(sorted(VIEWPOINTS)):
-            source, T_gt = headset_cloud(room, view, cfg)
-            rng = np.random.default_rng(seed * 10 + k)
-            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
-            result = Registration(source.points, target.points,
-                                  RegistrationConfig(max_correspondence_distance=0.2),
-                                  source.probs, target.probs).run(init)
-            assert result.converged, result.reason
-            assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
-            errors.append(pose_error(result.T, T_gt).tangent)
-            covs.append(result.covariance)
-            model.append(result.diagnostic.model_covariance)
-    errors, covs = np.array(errors), np.array(covs)
+    errors, covs, model = _room_view_trials(quantisation_pitch=0.03)
     check = check_consistency(nees(errors, covs), dof=6)
     assert check.passed, check
     # negative controls: the sandwich alone, and the reported covariance shrunk by 10
-    assert not check_consistency(nees(errors, covs - np.array(model)), dof=6).passed
+    assert not check_consistency(nees(errors, covs - model), dof=6).passed
     assert not check_consistency(nees(errors, covs * 0.1), dof=6).passed
 
 
@@ -140,32 +148,10 @@ def test_coarse_room_views_keep_a_bounded_gap():
     """The same at 96x72 images (coarser headset clouds, 7k points): the term leaves the
     covariance about 1.4x too small there (measured mean NEES 9.8, 650 without the term;
     160x120: 9.6). Pins the gain and bounds the remaining gap."""
-    from perception.simulation.room import (
-        VIEWPOINTS,
-        RoomConfig,
-        build_room,
-        headset_cloud,
-        robot_semantic_map,
-    )
-    errors, covs, model = [], [], []
-    for seed in range(100, 108):
-        cfg = RoomConfig(seed=seed, image_width=96, image_height=72, focal=72.0)
-        room = build_room(cfg)
-        target = robot_semantic_map(room, cfg)
-        for k, view in enumerate(sorted(VIEWPOINTS)):
-            source, T_gt = headset_cloud(room, view, cfg)
-            rng = np.random.default_rng(seed * 10 + k)
-            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
-            result = Registration(source.points, target.points,
-                                  RegistrationConfig(max_correspondence_distance=0.2),
-                                  source.probs, target.probs).run(init)
-            assert result.converged, result.reason
-            errors.append(pose_error(result.T, T_gt).tangent)
-            covs.append(result.covariance)
-            model.append(result.diagnostic.model_covariance)
-    check = check_consistency(nees(np.array(errors), np.array(covs)), dof=6)
+    errors, covs, model = _room_view_trials(image_width=96, image_height=72, focal=72.0)
+    check = check_consistency(nees(errors, covs), dof=6)
     assert check.mean < 2.0 * check.upper, check
-    assert _mean_nees(errors, np.array(covs) - np.array(model)) > 30.0 * check.upper
+    assert _mean_nees(errors, covs - model) > 30.0 * check.upper
 
 
 def voxel_map_pair(seed: int, n_source: int = 6000, n_dense: int = 60000, pitch: float = 0.03,
