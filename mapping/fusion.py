@@ -90,25 +90,25 @@ def _same_pose(cached, t, q) -> bool:
     return bool(np.abs(ct - t).max() < 1e-6 and same_q)
 
 
-def fuse_scan_records(nodes, resolution: float, max_range: float = -1.0,
+def fuse_scan_records(records, resolution: float, max_range: float = -1.0,
                       discretize: bool = False, progress: bool = False) -> OcTree:
-    """:func:`fuse` for the nodes of a .graph file as read by
-    :func:`estimation.scan_graph.read_scan_graph_records` (no PoseGraph, so no GTSAM): the
-    scans inserted at the file's float32 poses in id order, bit-identical to graph2tree."""
+    """:func:`fuse` for the nodes of a .graph file as
+    :func:`estimation.scan_graph.map_scan_graph_records` gives them (no PoseGraph, so no
+    GTSAM): the scans inserted at the file's float32 poses in id order, bit-identical to
+    graph2tree. Each node's points are narrowed, checked and transformed on the insertion
+    threads (:meth:`OcTree.insert_point_clouds`), so reading overlaps marking."""
     tree = OcTree(resolution)
-    ordered = sorted(nodes, key=lambda node: node.node_id)
-    iterator = ordered
+    ordered = [r for r in sorted(records, key=lambda r: r.node_id) if r.n_points]
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(ordered, desc="fusing scans", unit="scan")
-    for node in iterator:
-        if len(node.points) == 0:
-            continue
-        points_world, origin = transform_points_octomap(node.points, node.pose.t,
-                                                        node.pose.q_wxyz)
-        tree.insert_point_cloud(points_world, origin, max_range=max_range,
-                                discretize=discretize)
+        ordered = tqdm(ordered, desc="fusing scans", unit="scan")
+
+    def world_scan(record):
+        return transform_points_octomap(record.points(), record.pose.t, record.pose.q_wxyz)
+
+    tree.insert_point_clouds(ordered, max_range=max_range, discretize=discretize,
+                             prepare=world_scan)
     return tree
 
 
@@ -132,16 +132,15 @@ def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: boo
     semantic = isinstance(tree, SemanticOcTree)
     ids = pose_graph.sorted_ids() if hasattr(pose_graph, "sorted_ids") else sorted(
         pose_graph.nodes)
-    iterator = ids
+    nodes = [pose_graph.nodes[i] for i in ids]
+    nodes = [n for n in nodes if getattr(n, "scan", None) is not None
+             and n.scan.points is not None and len(n.scan.points)]
     if progress:
         from tqdm import tqdm
 
-        iterator = tqdm(ids, desc="fusing scans", unit="scan")
-    for node_id in iterator:
-        node = pose_graph.nodes[node_id]
-        scan = getattr(node, "scan", None)
-        if scan is None or scan.points is None or len(scan.points) == 0:
-            continue
+        nodes = tqdm(nodes, desc="fusing scans", unit="scan")
+
+    def world_scan(node):
         t, q = _pose_to_t_q(node.pose)
         # A node read from a .graph file keeps the file's float32 pose: use it while the pose
         # is unchanged (a Pose3 -> quaternion round trip can move the last float32 bit).
@@ -149,12 +148,16 @@ def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: boo
         if cached is not None and _same_pose(cached, t, q):
             t = np.asarray(cached.t, dtype=np.float64)
             q = np.asarray(cached.q_wxyz, dtype=np.float64)
-        points_world, origin = transform_points_octomap(scan.points, t, q)
-        if semantic:
-            tree.insert_point_cloud(points_world, origin, probs=scan.probs,
-                                    labels=None if scan.probs is not None else scan.labels,
-                                    max_range=max_range, discretize=discretize)
-        else:
-            tree.insert_point_cloud(points_world, origin, max_range=max_range,
-                                    discretize=discretize)
+        return transform_points_octomap(node.scan.points, t, q)
+
+    if not semantic:  # the scans marked concurrently, applied in id order
+        tree.insert_point_clouds(nodes, max_range=max_range, discretize=discretize,
+                                 prepare=world_scan)
+        return tree
+    for node in nodes:
+        points_world, origin = world_scan(node)
+        scan = node.scan
+        tree.insert_point_cloud(points_world, origin, probs=scan.probs,
+                                labels=None if scan.probs is not None else scan.labels,
+                                max_range=max_range, discretize=discretize)
     return tree

@@ -6,11 +6,13 @@ counts and files are bit-identical to liboctomap 1.9.7 (see docs/octree.md for t
 """
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import sys
 import threading
 import warnings
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -215,10 +217,12 @@ def _executor(n_workers: int):
 
 
 def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: float,
-                  discretize: bool, hit_log: np.float32, miss_log: np.float32):
+                  discretize: bool, hit_log: np.float32, miss_log: np.float32,
+                  max_shares: int | None = None):
     """A scan's sorted codes, their log-odds updates, the number of hit cells and the counters
     (non-finite, out of bounds, failed): the rays marked in shares on numba's threads
-    (with ``discretize``, one ray per endpoint voxel centre)."""
+    (with ``discretize``, one ray per endpoint voxel centre). ``max_shares=1`` marks on the
+    calling thread alone (a scan of ``OcTree.insert_point_clouds``, already on a worker)."""
     k = _k()
     get_num_threads = _num_threads
 
@@ -226,7 +230,8 @@ def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: fl
     if discretize:
         pts, *skipped = k.discretize_points(pts, res)
     n = pts.shape[0]
-    n_chunks = max(1, min(get_num_threads(), n // _PARALLEL_MIN_CHUNK))
+    n_chunks = max(1, min(get_num_threads(), n // _PARALLEL_MIN_CHUNK,
+                          max_shares or get_num_threads()))
     block = _PARALLEL_BLOCK if n_chunks > 1 else max(n, 1)
     empty = np.zeros(0, np.uint8)
     with _GRID_LOCK:
@@ -256,6 +261,14 @@ def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: fl
     counts = [sum(int(p[5][j]) for p in parts) for j in (1, 2, 3)]
     return (codes, upd, int(n_hit), counts[0] + int(skipped[0]), counts[1] + int(skipped[1]),
             counts[2])
+
+
+def _checked_scan(points, origin) -> tuple[np.ndarray, np.ndarray]:
+    pts = as_points3(points, "points")
+    o = as_point3(origin, "origin")
+    if not np.isfinite(o).all():
+        raise OctreeError(f"sensor origin must be finite, got {o.tolist()}")
+    return pts, o
 
 
 class OcTree:
@@ -458,19 +471,71 @@ class OcTree:
         marked on numba's thread count (``NUMBA_NUM_THREADS``); the result does not depend on it.
         """
         self._check_updatable()
-        pts = as_points3(points, "points")
-        o = as_point3(origin, "origin")
-        if not np.isfinite(o).all():
-            raise OctreeError(f"sensor origin must be finite, got {o.tolist()}")
+        pts, o = _checked_scan(points, origin)
         codes, upd, n_occ, n_nonfinite, n_oob, _n_failed = _scan_updates(
             pts, o, self.resolution, float(max_range), bool(discretize),
             np.float32(self.prob_hit_log), np.float32(self.prob_miss_log))
+        return self._apply_scan(pts.shape[0], codes, upd, n_occ, n_nonfinite, n_oob, lazy_eval)
+
+    def insert_point_clouds(self, scans, max_range: float = -1.0, discretize: bool = False,
+                            lazy_eval: bool = False, prepare=None) -> list[InsertStats]:
+        """:meth:`insert_point_cloud` for each ``(points, origin)`` of ``scans``, in order.
+
+        The tree is the same as from inserting the scans one by one, bit for bit: a scan's
+        updates depend only on its own rays, so the scans are marked on numba's thread count
+        (``NUMBA_NUM_THREADS``) at the same time, a whole scan per thread, and applied to the
+        tree in order on the calling thread while the next ones are marked. ``prepare``
+        (optional) turns an item of ``scans`` into its ``(points, origin)`` on those threads,
+        so reading or transforming a scan overlaps the work on the others (``octofactor map``
+        narrows and transforms each .graph node there). At most threads + 1 scans are in
+        flight. An error of a scan is raised when its turn comes: the scans before it are in
+        the tree, the others are dropped.
+        """
+        self._check_updatable()
+        res, hit, miss = self.resolution, np.float32(self.prob_hit_log), np.float32(
+            self.prob_miss_log)
+
+        def mark(item):
+            points, origin = prepare(item) if prepare else item
+            pts, o = _checked_scan(points, origin)
+            return pts.shape[0], _scan_updates(pts, o, res, float(max_range), bool(discretize),
+                                               hit, miss, max_shares=1)
+
+        threads = _num_threads()
+        if threads < 2:
+            stats = []
+            for item in scans:
+                n_points, (codes, upd, n_occ, n_nonfinite, n_oob, _) = mark(item)
+                stats.append(self._apply_scan(n_points, codes, upd, n_occ, n_nonfinite, n_oob,
+                                              lazy_eval))
+            return stats
+        executor = _executor(threads)
+        pending: deque = deque()
+        items = iter(scans)
+        stats = []
+        try:
+            for item in itertools.islice(items, threads + 1):
+                pending.append(executor.submit(mark, item))
+            while pending:
+                n_points, (codes, upd, n_occ, n_nonfinite, n_oob, _) = pending.popleft().result()
+                for item in itertools.islice(items, 1):
+                    pending.append(executor.submit(mark, item))
+                stats.append(self._apply_scan(n_points, codes, upd, n_occ, n_nonfinite, n_oob,
+                                              lazy_eval))
+        finally:
+            for future in pending:
+                future.cancel()
+        return stats
+
+    def _apply_scan(self, n_points, codes, upd, n_occ, n_nonfinite, n_oob, lazy_eval,
+                    stacklevel: int = 3) -> InsertStats:
         if n_nonfinite or n_oob:
             warnings.warn(f"insert_point_cloud: skipped {n_nonfinite} non-finite points and "
-                          f"{n_oob} endpoints outside the map", RuntimeWarning, stacklevel=2)
+                          f"{n_oob} endpoints outside the map", RuntimeWarning,
+                          stacklevel=stacklevel)
         self._apply(codes, upd, lazy_eval)
-        return InsertStats(int(pts.shape[0]), int(codes.shape[0]) - n_occ, n_occ,
-                           int(n_nonfinite), int(n_oob))
+        return InsertStats(int(n_points), int(codes.shape[0]) - n_occ, n_occ, int(n_nonfinite),
+                           int(n_oob))
 
     def insert_ray(self, origin, end, max_range: float = -1.0, lazy_eval: bool = False) -> None:
         """insertRay: free cells along the ray (cut at ``max_range``), the end cell occupied.

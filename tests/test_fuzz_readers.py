@@ -105,6 +105,16 @@ def _read_pose_graph(path):
     return read_pose_graph(path)
 
 
+def _read_scan_graph_mapped(path):
+    """What ``octofactor map G.graph`` reads: the mapped records, then each node's points."""
+    from estimation.scan_graph import map_scan_graph_records
+
+    records, edges = map_scan_graph_records(path)
+    points = [record.points() for record in records]
+    assert all(np.all(np.isfinite(p)) for p in points)
+    return len(points), len(edges)
+
+
 def _read_tree(path):
     from mapping import OcTree
 
@@ -199,6 +209,7 @@ def _kitti_text() -> str:
 # name -> (seed bytes factory, file name, reader, text format?)
 READERS = {
     "graph": (hf.scan_graph_bytes, "x.graph", _read_pose_graph, False),
+    "graph_mapped": (hf.scan_graph_bytes, "x.graph", _read_scan_graph_mapped, False),
     "g2o": (lambda: hf.g2o_text().encode(), "x.g2o", _read_pose_graph, True),
     "tum": (lambda: hf.tum_text().encode(), "x.txt", _read_pose_graph, True),
     "kitti": (lambda: _kitti_text().encode(), "x.kitti", _read_trajectory, True),

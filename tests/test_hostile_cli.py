@@ -101,6 +101,8 @@ def _write_files(d: Path) -> None:
     (d / "deep.g2o").write_text(ok_g2o)
     (d / "deep.g2o.json").write_text("[" * 200000 + "]" * 200000)
     (d / "selfloop.graph").write_bytes(hf.scan_graph_bytes(self_loop=True))
+    (d / "nanpoint.graph").write_bytes(hf.scan_graph_bytes(nan_point=True))
+    (d / "empty.graph").write_bytes(b"")
     (d / "latin1.txt").write_bytes(b"# caf\xe9\n1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
     (d / "clouds").mkdir()
     (d / "clouds" / "0.ply").write_bytes(hf.ply_bytes(30, claimed=40))
@@ -165,6 +167,11 @@ CASES = [
      "claims_neg.ply"),
     ("register-truncated", "register {d}/truncated.ply {d}/ok.ply -o {d}/o8.json",
      "truncated.ply"),
+    # `map G.graph` maps the file and checks each node's points on the insertion threads
+    ("map-graph-nan-point", "map {d}/nanpoint.graph -o {d}/o31.bt",
+     "nanpoint.graph (byte 220): node #1 point 2"),
+    ("map-graph-empty", "map {d}/empty.graph -o {d}/o32.bt", "empty.graph"),
+    ("map-graph-self-loop", "map {d}/selfloop.graph -o {d}/o33.bt", "selfloop.graph"),
     ("map-clouds-claims-more", "map {d}/ok.g2o --clouds {d}/clouds -o {d}/o9.bt", "0.ply"),
     ("map-clouds-pcd-claims-2e9", "map {d}/ok.g2o --clouds {d}/pcd -o {d}/o28.bt", "0.pcd"),
     # octree files

@@ -18,7 +18,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from mapping import OcTree, fuse, logodds
-from mapping.octree import probability
+from mapping.octree import OctreeError, probability
 
 pytestmark = pytest.mark.reference
 
@@ -294,6 +294,78 @@ def test_nonfinite_and_out_of_map_points_are_skipped_and_counted(scan_points):
     assert tree.to_bytes_ot() == clean.to_bytes_ot()
 
 
+def _scan_batch(scan_points, rng):
+    """Seven scans from moving origins: one of 40k points (big enough for shares of rays),
+    one with NaN and out-of-map points, one empty."""
+    scans = []
+    for i in range(7):
+        n = 40_000 if i == 2 else int(rng.integers(500, 6000))
+        pts = scan_points[rng.choice(len(scan_points), n, replace=False)] * np.float32(0.3)
+        origin = rng.uniform(-0.5, 0.5, 3)
+        pts = (pts + origin).astype(np.float32)
+        if i == 4:
+            pts[::50] = np.nan
+            pts[3] = [1e7, 0, 0]
+        if i == 5:
+            pts = pts[:0]
+        scans.append((pts, origin))
+    return scans
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_insert_point_clouds_equals_scans_one_by_one_and_liboctomap(scan_points, threads,
+                                                                    monkeypatch):
+    """The scans marked on several threads at once and applied in order: the same tree (bytes),
+    the same stats and the same warnings as one insert_point_cloud per scan, and liboctomap's
+    tree."""
+    import mapping.octree as octree_module
+
+    scans = _scan_batch(scan_points, np.random.default_rng(11))
+    one_by_one = OcTree(0.1)
+    with warnings.catch_warnings(record=True) as caught_ref:
+        warnings.simplefilter("always")
+        ref_stats = [one_by_one.insert_point_cloud(p, o, max_range=3.0) for p, o in scans]
+    liboctomap = octomap.OcTree(0.1)
+    for p, o in scans:  # the far point still frees its first 3 m, as in liboctomap
+        ok = np.isfinite(p).all(axis=1)
+        liboctomap.insertPointCloud(p[ok].astype(np.float64), o.astype(np.float32).astype(float),
+                                    maxrange=3.0)
+    monkeypatch.setattr(octree_module, "_num_threads", lambda: threads)
+    tree = OcTree(0.1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stats = tree.insert_point_clouds(iter(scans), max_range=3.0)
+    assert tree.to_bytes_ot() == one_by_one.to_bytes_ot() == liboctomap.write()
+    assert stats == ref_stats
+    assert [str(w.message) for w in caught] == [str(w.message) for w in caught_ref]
+    assert len(caught) == 1 and caught[0].filename == __file__
+
+
+def test_insert_point_clouds_prepares_on_the_threads_and_stops_at_a_failing_scan(
+        scan_points, monkeypatch):
+    """``prepare`` turns each item into its scan; a scan that fails raises in its turn, with
+    the scans before it in the tree and none after it."""
+    import mapping.octree as octree_module
+
+    monkeypatch.setattr(octree_module, "_num_threads", lambda: 2)
+    scans = _scan_batch(scan_points, np.random.default_rng(12))
+    first_three = OcTree(0.1)
+    for p, o in scans[:3]:
+        first_three.insert_point_cloud(p, o)
+    prepared = []
+
+    def prepare(index):
+        prepared.append(index)
+        points, origin = scans[index]
+        return points, (origin if index != 3 else np.array([np.nan, 0.0, 0.0]))
+
+    tree = OcTree(0.1)
+    with pytest.raises(OctreeError, match="sensor origin must be finite"):
+        tree.insert_point_clouds(range(len(scans)), prepare=prepare)
+    assert tree.to_bytes_ot() == first_three.to_bytes_ot()
+    assert max(prepared) <= 3 + 2 + 1  # at most threads + 1 scans in flight
+
+
 # --------------------------------------------------------------------------- queries
 
 
@@ -399,10 +471,10 @@ def test_fuse_rotated_multi_node_graph_equals_graph2tree(scan_points, graph2tree
     tree.write_bt(tmp_path / "rot.bt")
     assert (tmp_path / "rot.bt").read_bytes() == ref_bt
     # the GTSAM-free path of `octofactor map G.graph` (the file's records, no PoseGraph)
-    from estimation.scan_graph import read_scan_graph_records
+    from estimation.scan_graph import map_scan_graph_records
     from mapping.fusion import fuse_scan_records
 
-    nodes, _ = read_scan_graph_records(path)
+    nodes, _ = map_scan_graph_records(path)
     assert fuse_scan_records(nodes, 0.1, max_range=6.0).to_bytes_ot() == ref_ot
 
 
