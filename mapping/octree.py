@@ -487,7 +487,7 @@ class OcTree:
         tree in order on the calling thread while the next ones are marked. ``prepare``
         (optional) turns an item of ``scans`` into its ``(points, origin)`` on those threads,
         so reading or transforming a scan overlaps the work on the others (``octofactor map``
-        narrows and transforms each .graph node there). At most threads + 1 scans are in
+        narrows and transforms each .graph node there). At most 2 threads + 1 scans are in
         flight. An error of a scan is raised when its turn comes: the scans before it are in
         the tree, the others are dropped.
         """
@@ -514,7 +514,7 @@ class OcTree:
         items = iter(scans)
         stats = []
         try:
-            for item in itertools.islice(items, threads + 1):
+            for item in itertools.islice(items, 2 * threads + 1):
                 pending.append(executor.submit(mark, item))
             while pending:
                 n_points, (codes, upd, n_occ, n_nonfinite, n_oob, _) = pending.popleft().result()
