@@ -68,7 +68,11 @@ def map_input_file(path: str | os.PathLike, max_bytes: int = MAX_INPUT_BYTES):
     if size == 0:  # mmap cannot map an empty file
         return b""
     with open(path, "rb") as handle:
-        return mmap.mmap(handle.fileno(), size, access=mmap.ACCESS_READ)
+        try:
+            return mmap.mmap(handle.fileno(), size, access=mmap.ACCESS_READ)
+        except (OSError, ValueError):  # a file system that cannot map files: read it
+            pass
+    return read_input_bytes(path, max_bytes)
 
 
 def library_path(path: str | os.PathLike, library: str) -> str:

@@ -134,6 +134,30 @@ def test_inputs_must_be_regular_files_of_bounded_size(tmp_path):
     assert read_input_bytes(tmp_path / "f", max_bytes=100) == b"x" * 100
 
 
+def test_mapped_inputs_are_checked_alike_and_fall_back_to_reading(tmp_path, monkeypatch):
+    """map_input_file: the same refusals as read_input_bytes, the same bytes, an empty file,
+    and a plain read where the file system cannot map files."""
+    import mmap
+
+    from estimation.fileio import map_input_file
+
+    with pytest.raises(FormatError, match="not a regular file"):
+        map_input_file("/dev/zero")
+    (tmp_path / "f").write_bytes(bytes(range(256)) * 4)
+    with pytest.raises(FormatError, match="limit"):
+        map_input_file(tmp_path / "f", max_bytes=1023)
+    mapped = map_input_file(tmp_path / "f")
+    assert isinstance(mapped, mmap.mmap) and bytes(mapped) == bytes(range(256)) * 4
+    (tmp_path / "empty").write_bytes(b"")
+    assert bytes(map_input_file(tmp_path / "empty")) == b""
+
+    def no_mmap(*args, **kwargs):
+        raise OSError(19, "No such device")
+
+    monkeypatch.setattr(mmap, "mmap", no_mmap)
+    assert map_input_file(tmp_path / "f") == bytes(range(256)) * 4
+
+
 # ------------------------------------------------------------------ API errors name the argument
 def _api_cases():
     import gtsam

@@ -478,6 +478,27 @@ def test_fuse_rotated_multi_node_graph_equals_graph2tree(scan_points, graph2tree
     assert fuse_scan_records(nodes, 0.1, max_range=6.0).to_bytes_ot() == ref_ot
 
 
+def test_mapped_scan_graph_records_equal_the_read_ones(shared_data):
+    """`map G.graph` reads the file mapped and narrows each node's points later: the same ids,
+    poses, points and edges as the eager reader."""
+    from estimation.scan_graph import map_scan_graph_records, read_scan_graph_records
+
+    path = shared_data / "octomap" / "spherical_scan.graph"
+    nodes, edges = read_scan_graph_records(path)
+    records, mapped_edges = map_scan_graph_records(path)
+    assert [r.node_id for r in records] == [n.node_id for n in nodes]
+    for record, node in zip(records, nodes):
+        assert record.n_points == len(node.points) > 0
+        assert np.array_equal(record.points(), node.points)
+        assert np.array_equal(record.pose.t, node.pose.t)
+        assert np.array_equal(record.pose.q_wxyz, node.pose.q_wxyz)
+    assert len(mapped_edges) == len(edges)
+    for mapped, edge in zip(mapped_edges, edges):
+        assert (mapped.first, mapped.second, mapped.weight) == (edge.first, edge.second,
+                                                                edge.weight)
+        assert np.array_equal(mapped.constraint.t, edge.constraint.t)
+
+
 def test_point_transform_kernel_equals_the_float32_reference(kernel_backend):
     """graph2tree's float32 quaternion transform: the kernel gives the numpy reference's bits
     (every product and sum rounded in liboctomap's order; no fused multiply-add), for random
