@@ -139,6 +139,7 @@ def run_ours(src, tgt, init, stages):
 
 METHODS = {
     "gicp-se3": run_ours,
+    "gicp-se3-oneway": lambda s, t, i, d: register_ours(s, t, i, d, symmetric=False),
     "open3d-gicp": run_open3d,
     "open3d-gicp-c2": lambda s, t, i, d: run_open3d(s, t, i, d, cauchy=2.0),
     "small_gicp": run_small_gicp,
@@ -301,7 +302,7 @@ def report_split_nees(out: dict) -> None:
 def _run(method, setting, init, stages):
     """Return (T, seconds, result or None) of one registration."""
     out, seconds = METHODS[method](setting.source, setting.target, init, stages)
-    if method == "gicp-se3":
+    if method.startswith("gicp-se3"):
         return out.T, seconds, out
     return np.asarray(out), seconds, None
 
