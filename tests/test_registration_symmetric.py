@@ -93,3 +93,5 @@ def test_voxel_lattice_keeps_one_direction():
 def test_bad_symmetric_option_is_rejected():
     with pytest.raises(EstimationError, match="symmetric"):
         RegistrationConfig(symmetric="yes")
+    with pytest.raises(EstimationError, match="tilted_planes"):
+        RegistrationConfig(tilted_planes=1)
