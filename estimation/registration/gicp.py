@@ -426,6 +426,7 @@ class Registration:
         self._source_cov = source_cov
         self._target_cov = target_cov
         self._tree: cKDTree | None = None
+        self._source_tree: cKDTree | None = None
         self._index: SemanticIndex | None = None
         self._block: float | None = None
         self._cache: NeighbourCache | None = None
@@ -456,9 +457,12 @@ class Registration:
     def source_cov(self) -> np.ndarray:
         if self._source_cov is None:
             # one neighbour query gives the covariances and, on a voxel lattice, the means
+            # (the tree is kept: the symmetric midpoint's reverse searches the source)
+            self._source_tree = cKDTree(self.source)
             self._source_cov, self._source_pos = neighbourhoods(
                 self.source, self.config.k_neighbours, self.config.epsilon,
-                radius=self._means_radius, min_points=self.config.surface_min_points)
+                self._source_tree, radius=self._means_radius,
+                min_points=self.config.surface_min_points)
         return self._source_cov
 
     @property
@@ -820,8 +824,11 @@ class Registration:
         The per-point covariances (the reverse's source is this target, its target this
         source), the lattice decision, the kernel's alpha and Semantic-ICP's residual sigma.
         """
+        # (every pose the reverse visits is within a few standard deviations of the first:
+        # two cached candidates keep its neighbour search exact, and cost half the query)
         cfg = replace(self.config, initial_correspondence_distance=None, symmetric=False,
-                      cauchy_scale="fixed", cauchy_alpha=self._alpha)
+                      cauchy_scale="fixed", cauchy_alpha=self._alpha,
+                      cached_neighbours=min(self.config.cached_neighbours, 2))
         # (the target's covariances stay lazy: the reverse matches mostly the same rows)
         rev = Registration(self.target, self.source, cfg,
                            self.target_probs if self.semantic else None,
@@ -832,6 +839,7 @@ class Registration:
         if self._surface_radius is not None:  # the local means come with the covariances
             rev._source_pos = self._target_stats.means(np.arange(len(self.target)))
         rev._sigma, rev._alpha, rev._block = self._sigma, self._alpha, self._block
+        rev._tree = self._source_tree
         return rev
 
     def reverse_terms(self, T: np.ndarray, d_max: float, block: float
@@ -947,7 +955,8 @@ class Registration:
                            self.source_cov[corr.source_idx], T_i[:3, :3])
             terms = gicp_terms(T_i, src, tgt, Ut)
             w = self._weights(terms.mahalanobis, corr.weights)
-            F = np.einsum("m,mij,mi->j", w, terms.jacobians, terms.residuals)
+            # sum_k w_k J_k^T r_k as one matrix-vector product
+            F = terms.jacobians.reshape(-1, 6).T @ (w[:, None] * terms.residuals).reshape(-1)
             D[:, i] = (F - F0) / steps[i]
         self._sigma = sigma
         # relative to A: A = L L^T, S = L^-1 D L^-T, eigenvalues limited to [0.25, 1]
