@@ -457,13 +457,18 @@ class Registration:
     def source_cov(self) -> np.ndarray:
         if self._source_cov is None:
             # one neighbour query gives the covariances and, on a voxel lattice, the means
-            # (the tree is kept: the symmetric midpoint's reverse searches the source)
-            self._source_tree = cKDTree(self.source)
             self._source_cov, self._source_pos = neighbourhoods(
                 self.source, self.config.k_neighbours, self.config.epsilon,
-                self._source_tree, radius=self._means_radius,
+                self.source_tree, radius=self._means_radius,
                 min_points=self.config.surface_min_points)
         return self._source_cov
+
+    @property
+    def source_tree(self) -> cKDTree:
+        """KD-tree of the source (its covariances, its lattice test, the reverse's target)."""
+        if self._source_tree is None:
+            self._source_tree = cKDTree(self.source)
+        return self._source_tree
 
     @property
     def target_tree(self) -> cKDTree:
@@ -839,7 +844,7 @@ class Registration:
         if self._surface_radius is not None:  # the local means come with the covariances
             rev._source_pos = self._target_stats.means(np.arange(len(self.target)))
         rev._sigma, rev._alpha, rev._block = self._sigma, self._alpha, self._block
-        rev._tree = self._source_tree
+        rev._tree = self.source_tree
         return rev
 
     def reverse_terms(self, T: np.ndarray, d_max: float, block: float
@@ -983,7 +988,7 @@ class Registration:
         """The voxel lattice pitch found in the target (else the source), or None (cached)."""
         if self._found_pitch == "unset":
             self._found_pitch = lattice_pitch(self.target, self.target_tree) or lattice_pitch(
-                self.source)
+                self.source, self.source_tree)
         return self._found_pitch
 
     def cluster_size(self, T, corr) -> float:
