@@ -439,8 +439,6 @@ class Registration:
         self._class_cache_owner: NeighbourCache | None = None
         self._sigma: float | None = None  # Semantic-ICP's EM residual sigma, reset by run()
         self._alpha: float = self.config.cauchy_alpha  # the kernel's alpha in use (run())
-        # (solution terms, point-noise bread, block edge) of the last covariance (_finish)
-        self._noise_terms: tuple | None = None
 
     @staticmethod
     def _probs(probs: np.ndarray, n: int, what: str) -> np.ndarray:
@@ -810,9 +808,9 @@ class Registration:
             ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
             diagnostic = CovarianceDiagnostic(pitch, share, ratio, ratio <= cfg.trust_ratio,
                                               cov_model, gain)
-            self._noise_terms = (sol, A_noise, block)
-            if (cfg.symmetric and not unconstrained and pitch is None and converged):
-                T, cov, diagnostic = self._symmetric(T, d_max, cov, diagnostic)
+            if cfg.symmetric and not unconstrained and pitch is None and converged:
+                T, cov, diagnostic = self._symmetric(T, d_max, cov, diagnostic, sol, A_noise,
+                                                     block)
         inliers = len(corr)
         if unconstrained:
             converged = False
@@ -876,8 +874,8 @@ class Registration:
         return T_inv @ gtsam.Pose3.Expmap(eta).matrix(), sol, A_noise
 
     def _symmetric(self, T: np.ndarray, d_max: float, cov: np.ndarray,
-                   diagnostic: CovarianceDiagnostic
-                   ) -> tuple[np.ndarray, np.ndarray, CovarianceDiagnostic]:
+                   diagnostic: CovarianceDiagnostic, sol_f: SolutionTerms, A_nf: np.ndarray,
+                   block: float) -> tuple[np.ndarray, np.ndarray, CovarianceDiagnostic]:
         """Return (T, covariance, diagnostic) of the midpoint of both registration directions.
 
         Nearest-neighbour matching is not symmetric: on real scans the estimate moves when
@@ -889,9 +887,9 @@ class Registration:
         directions' scores summed in the same spatial blocks (they re-use the same points,
         so the two estimates are correlated), each direction's own bread, the midpoint's
         linear map ``[I/2, -Ad(T_rev)/2]``; with the fixed-association and the re-matched
-        breads, the Loewner maximum of the two, as for one direction.
+        breads, the Loewner maximum of the two, as for one direction. ``sol_f``, ``A_nf`` and
+        ``block`` are the forward direction's solution terms, re-matched bread and block edge.
         """
-        sol_f, A_nf, block = self._noise_terms
         reverse = self.reverse_terms(T, d_max, block)
         if reverse is None:
             return T, cov, diagnostic
