@@ -18,7 +18,7 @@ from estimation.covariance import nees
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig
 
-CONFIG = RegistrationConfig(max_correspondence_distance=0.3)
+CONFIG = RegistrationConfig(max_correspondence_distance=0.3, symmetric=True)
 ONE_WAY = RegistrationConfig(max_correspondence_distance=0.3, symmetric=False)
 
 
@@ -80,7 +80,7 @@ def test_voxel_lattice_keeps_one_direction():
     from test_registration_model_error import voxel_map_pair
 
     source, target, _ = voxel_map_pair(3000, n_source=1500, n_dense=20000)
-    cfg = RegistrationConfig(max_correspondence_distance=0.3)
+    cfg = RegistrationConfig(max_correspondence_distance=0.3, symmetric=True)
     sym = Registration(source, target, cfg).run()
     one = Registration(source, target, RegistrationConfig(
         max_correspondence_distance=0.3, symmetric=False)).run()
