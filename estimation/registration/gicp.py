@@ -1155,9 +1155,11 @@ def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndar
     if not size > 0:  # identical points: a neighbourhood radius of 0, one block
         return values.sum(axis=0, keepdims=True)
     block = _row_groups(np.floor(points / size).astype(np.int64))
-    out = np.zeros((int(block.max()) + 1, values.shape[1]))
-    np.add.at(out, block.reshape(-1), values)
-    return out
+    n_blocks, d = int(block.max()) + 1, values.shape[1]
+    # one bincount over (block, column) pairs: several times faster than np.add.at
+    index = (block.reshape(-1, 1) * d + np.arange(d)).reshape(-1)
+    return np.bincount(index, np.asarray(values, dtype=float).reshape(-1),
+                       n_blocks * d).reshape(n_blocks, d)
 
 
 def loewner_max(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
