@@ -50,7 +50,9 @@ for this pair (translation < 0.05 m, rotation < 0.05 rad): every method's fixed 
 rotation bound would measure the ground truth, not the method. The scan pair's ground truth
 is exact.
 
-Methods: "gicp-se3" (ours, default RegistrationConfig but for the schedule),
+Methods: "gicp-se3" (ours, default RegistrationConfig but for the schedule; off a voxel
+lattice, as here, the midpoint of both registration directions), "gicp-se3-oneway" (ours with
+``symmetric=False``: the forward direction only, the estimate before issue 14's third round),
 "open3d-gicp" (``registration_generalized_icp`` with CauchyLoss(1.0): the reference of the
 ratio columns), "open3d-gicp-c2" (CauchyLoss(2.0), our kernel scale), "small_gicp" (PyPI,
 GICP, 20 neighbours). Semantic-ICP is not applicable (no labels). Times are per registration
@@ -139,6 +141,7 @@ def run_ours(src, tgt, init, stages):
 
 METHODS = {
     "gicp-se3": run_ours,
+    "gicp-se3-oneway": lambda s, t, i, d: register_ours(s, t, i, d, symmetric=False),
     "open3d-gicp": run_open3d,
     "open3d-gicp-c2": lambda s, t, i, d: run_open3d(s, t, i, d, cauchy=2.0),
     "small_gicp": run_small_gicp,
@@ -238,6 +241,7 @@ def split_nees(octomap_dir: Path, splits: int) -> dict:
     """
     values, d_ours, d_ref, errors, sigmas, reasons = [], [], [], [], [], []
     t_ours, t_ref, trusted, scan_errors, scan_covs, alphas = [], [], [], [], [], []
+    gaps = []
     for seed in range(100, 100 + splits):
         s = scan_setting(octomap_dir, seed)
         metres, degrees, d0 = s.offsets["small"]
@@ -253,6 +257,8 @@ def split_nees(octomap_dir: Path, splits: int) -> dict:
         sigmas.append(np.sqrt(np.diag(result.covariance)))
         reasons.append(result.reason)
         alphas.append(result.cauchy_alpha)
+        gaps.append(result.diagnostic.direction_gap if result.diagnostic is not None
+                    else float("nan"))
         # in the scan's frame (the target's), where an error common to all splits is fixed
         adjoint = gtsam.Pose3(s.T_gt).AdjointMap()
         scan_errors.append(adjoint @ err.tangent)
@@ -269,7 +275,8 @@ def split_nees(octomap_dir: Path, splits: int) -> dict:
             "nees_centred": centred.tolist(), "cauchy_alpha": alphas,
             "rms_error": np.sqrt(np.mean(np.square(errors), axis=0)).tolist(),
             "median_sigma": np.median(sigmas, axis=0).tolist(), "reasons": reasons,
-            "time_s": t_ours, "time_s_open3d": t_ref, "trusted": trusted}
+            "time_s": t_ours, "time_s_open3d": t_ref, "trusted": trusted,
+            "direction_gap": gaps}
 
 
 def report_split_nees(out: dict) -> None:
@@ -289,7 +296,9 @@ def report_split_nees(out: dict) -> None:
           f"open3d {np.median(out['time_s_open3d']):.3f} s (ratio of medians "
           f"{np.median(out['time_s']) / np.median(out['time_s_open3d']):.2f}, paired "
           f"{np.median(np.divide(out['time_s'], out['time_s_open3d'])):.2f}); median Cauchy "
-          f"alpha {np.median(out['cauchy_alpha']):.3g}")
+          f"alpha {np.median(out['cauchy_alpha']):.3g}; mean direction gap "
+          f"{np.nanmean(out['direction_gap']):.1f} (forward vs reverse estimate, chi-square "
+          f"6 dof without a direction-dependent bias)")
     z = np.divide(out["common_error"], out["common_error_se"])
     print(f"  About the splits' common error (scan frame, [rx ry rz] mrad [tx ty tz] mm "
           f"{np.array2string(np.multiply(out['common_error'], 1e3), precision=3)}, / its "
@@ -301,7 +310,7 @@ def report_split_nees(out: dict) -> None:
 def _run(method, setting, init, stages):
     """Return (T, seconds, result or None) of one registration."""
     out, seconds = METHODS[method](setting.source, setting.target, init, stages)
-    if method == "gicp-se3":
+    if method.startswith("gicp-se3"):
         return out.T, seconds, out
     return np.asarray(out), seconds, None
 

@@ -5,7 +5,8 @@ Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs
 ``--method gicp``), run GICP-SE(3) or Semantic-ICP and write RESULT.json with T
 (T_target_source, 4x4), covariance (6x6, [rotation, translation]), converged, reason,
 iterations, inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
-model-error share, correlation ratio, covariance_trusted) and, with --gt, d_se3 (eq. (9)),
+model-error share, correlation ratio, re-association gain, symmetric, direction gap,
+covariance_trusted) and, with --gt, d_se3 (eq. (9)),
 t_err_m, r_err_rad and nees.
 
 ``calibrate`` registers the headset cloud (source) to the robot's semantic map (target): the
@@ -147,6 +148,9 @@ def _register(args, source, target, flip=None) -> dict:
             "model_error_share": diagnostic.model_error_share,
             "correlation_ratio": diagnostic.correlation_ratio,
             "reassociation_gain": diagnostic.reassociation_gain,
+            "symmetric": bool(diagnostic.symmetric),
+            "direction_gap": (None if not diagnostic.symmetric
+                              else float(diagnostic.direction_gap)),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:

@@ -41,6 +41,8 @@ def test_register_writes_result_with_errors(tmp_path):
         assert diagnostic["quantisation_pitch_m"] is None  # measured-like clouds: no lattice
         assert isinstance(diagnostic["covariance_trusted"], bool)
         assert diagnostic["correlation_ratio"] > 0 and diagnostic["model_error_share"] == 0
+        # off a lattice: the midpoint of both directions, with their disagreement
+        assert diagnostic["symmetric"] is True and diagnostic["direction_gap"] > 0
 
 
 def test_register_bad_input_exits_2(tmp_path, capsys):
