@@ -5,6 +5,7 @@ small dataclasses; KD-trees are :class:`scipy.spatial.cKDTree`.
 """
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -93,17 +94,22 @@ class LazyCovariances:
         self.values = np.empty((len(points), 3, 3))
         self.mean_values = None if radius is None else np.empty((len(points), 3))
         self.done = np.zeros(len(points), bool)
+        # a symmetric registration's two directions fill the same rows from two threads
+        self._lock = threading.Lock()
 
     def _fill(self, idx: np.ndarray) -> None:
-        missing = idx[~self.done[idx]]
-        if len(missing):
-            rows = np.unique(missing)
-            covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree, rows,
-                                         self.radius, self.min_points)
-            self.values[rows] = covs
-            if means is not None:
-                self.mean_values[rows] = means
-            self.done[rows] = True
+        if self.done[idx].all():
+            return
+        with self._lock:
+            missing = idx[~self.done[idx]]
+            if len(missing):
+                rows = np.unique(missing)
+                covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree,
+                                             rows, self.radius, self.min_points)
+                self.values[rows] = covs
+                if means is not None:
+                    self.mean_values[rows] = means
+                self.done[rows] = True
 
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
         self._fill(idx)

@@ -392,6 +392,20 @@ def _as_transform(T: np.ndarray | gtsam.Pose3 | None) -> np.ndarray:
     return gtsam.Pose3(T).matrix()  # re-orthonormalises the rotation
 
 
+_REVERSE_EXECUTOR = None
+
+
+def _reverse_executor():
+    """One worker thread for the reverse direction of symmetric registrations."""
+    global _REVERSE_EXECUTOR
+    if _REVERSE_EXECUTOR is None:
+        from concurrent.futures import ThreadPoolExecutor
+
+        _REVERSE_EXECUTOR = ThreadPoolExecutor(max_workers=1,
+                                               thread_name_prefix="registration-reverse")
+    return _REVERSE_EXECUTOR
+
+
 class Registration:
     """Register a source cloud to a target cloud (GICP-SE(3) or Semantic-ICP).
 
@@ -771,6 +785,15 @@ class Registration:
                 sol.normals, tgt, sol.sensitivity, pitch,
                 self.target[corr.target_idx] if cfg.tilted_planes else None)
         sandwich = cfg.covariance == "sandwich"
+        # the reverse direction of the symmetric estimate depends only on T: it runs on a
+        # second thread while this direction's covariance is computed (its KD-tree queries
+        # and kernels release the GIL; the result is the same on one thread)
+        reverse = None
+        if cfg.symmetric and sandwich and pitch is None and converged:
+            # (the reverse registration takes its state, e.g. Semantic-ICP's sigma, now, on
+            # this thread: the re-matched bread below changes it while it runs)
+            reverse = _reverse_executor().submit(self.reverse_terms, T, d_max, block,
+                                                 self._reverse_registration())
         scale = self._scale(src)
         H_normal = self._normal_information(T, src, sol.normals, w)
 
@@ -808,9 +831,11 @@ class Registration:
             ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
             diagnostic = CovarianceDiagnostic(pitch, share, ratio, ratio <= cfg.trust_ratio,
                                               cov_model, gain)
-            if cfg.symmetric and not unconstrained and pitch is None and converged:
-                T, cov, diagnostic = self._symmetric(T, d_max, cov, diagnostic, sol, A_noise,
-                                                     block)
+            if reverse is not None and not unconstrained:
+                T, cov, diagnostic = self._symmetric(T, cov, diagnostic, sol, A_noise, block,
+                                                     reverse.result())
+        if reverse is not None and not reverse.done():
+            reverse.result()  # (unconstrained: not used, but not left running either)
         inliers = len(corr)
         if unconstrained:
             converged = False
@@ -845,7 +870,8 @@ class Registration:
         rev._tree = self.source_tree
         return rev
 
-    def reverse_terms(self, T: np.ndarray, d_max: float, block: float
+    def reverse_terms(self, T: np.ndarray, d_max: float, block: float,
+                      rev: Registration | None = None
                       ) -> tuple[np.ndarray, SolutionTerms, np.ndarray] | None:
         """Return (T_rev, its solution terms, its re-matched bread) of the reverse direction.
 
@@ -855,9 +881,10 @@ class Registration:
         the derivative of the score sum with the correspondences re-matched, so this is the
         reverse's own fixed point to first order (the forward solution is within about one
         standard deviation of it). None when the reverse has too few correspondences or
-        leaves a direction unconstrained (the forward estimate is then kept).
+        leaves a direction unconstrained (the forward estimate is then kept). ``rev``: the
+        reverse registration, if already made (:meth:`_reverse_registration`).
         """
-        rev = self._reverse_registration()
+        rev = self._reverse_registration() if rev is None else rev
         T_inv = np.linalg.inv(T)
         sol = rev.solution_terms(T_inv, d_max)
         if sol is None:
@@ -873,9 +900,10 @@ class Registration:
         eta = -np.linalg.solve(A_noise, sol.scores.sum(axis=0))
         return T_inv @ gtsam.Pose3.Expmap(eta).matrix(), sol, A_noise
 
-    def _symmetric(self, T: np.ndarray, d_max: float, cov: np.ndarray,
-                   diagnostic: CovarianceDiagnostic, sol_f: SolutionTerms, A_nf: np.ndarray,
-                   block: float) -> tuple[np.ndarray, np.ndarray, CovarianceDiagnostic]:
+    def _symmetric(self, T: np.ndarray, cov: np.ndarray, diagnostic: CovarianceDiagnostic,
+                   sol_f: SolutionTerms, A_nf: np.ndarray, block: float,
+                   reverse: tuple[np.ndarray, SolutionTerms, np.ndarray] | None
+                   ) -> tuple[np.ndarray, np.ndarray, CovarianceDiagnostic]:
         """Return (T, covariance, diagnostic) of the midpoint of both registration directions.
 
         Nearest-neighbour matching is not symmetric: on real scans the estimate moves when
@@ -888,9 +916,9 @@ class Registration:
         so the two estimates are correlated), each direction's own bread, the midpoint's
         linear map ``[I/2, -Ad(T_rev)/2]``; with the fixed-association and the re-matched
         breads, the Loewner maximum of the two, as for one direction. ``sol_f``, ``A_nf`` and
-        ``block`` are the forward direction's solution terms, re-matched bread and block edge.
+        ``block`` are the forward direction's solution terms, re-matched bread and block edge;
+        ``reverse`` is what :meth:`reverse_terms` returned for ``T``.
         """
-        reverse = self.reverse_terms(T, d_max, block)
         if reverse is None:
             return T, cov, diagnostic
         T_rev, sol_r, A_nr = reverse
