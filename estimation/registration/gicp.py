@@ -466,13 +466,22 @@ class Registration:
         return "semantic" if self.semantic else "gicp"
 
     @property
-    def source_cov(self) -> np.ndarray:
+    def source_cov(self) -> np.ndarray | LazyCovariances:
+        """Source covariances, indexable by row arrays."""
         if self._source_cov is None:
-            # one neighbour query gives the covariances and, on a voxel lattice, the means
-            self._source_cov, self._source_pos = neighbourhoods(
-                self.source, self.config.k_neighbours, self.config.epsilon,
-                self.source_tree, radius=self._means_radius,
-                min_points=self.config.surface_min_points)
+            radius = self._means_radius
+            if radius is None:
+                # per row on first use, as the target's: only the matched rows are needed
+                # (the scan splits overlap by less than half: 0.084 -> 0.078 s a registration)
+                self._source_cov = LazyCovariances(self.source, self.source_tree,
+                                                   self.config.k_neighbours,
+                                                   self.config.epsilon)
+            else:
+                # one neighbour query gives the covariances and the lattice's local means
+                self._source_cov, self._source_pos = neighbourhoods(
+                    self.source, self.config.k_neighbours, self.config.epsilon,
+                    self.source_tree, radius=radius,
+                    min_points=self.config.surface_min_points)
         return self._source_cov
 
     @property
