@@ -105,8 +105,9 @@ def test_reverse_on_its_thread_gives_the_same_bits_as_inline(semantic, monkeypat
     the calling thread."""
     from concurrent.futures import Future
 
-    import estimation.registration.gicp as gicp
     from test_registration import one_hot
+
+    import estimation.registration.gicp as gicp
 
     source, labels_s, target, labels_t, _ = make_pair(24, 2000, 0.005)
     probs = (one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9)) if semantic else (None,
