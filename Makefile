@@ -51,7 +51,6 @@ kernels: $(STAMP)
 	$(PY) -m estimation.aot build --if-stale
 	$(PY) -m compileall -q estimation mapping perception pipelines
 
-
 demo: setup
 	$(VENV)/bin/octofactor demo -o out
 

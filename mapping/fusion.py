@@ -132,9 +132,9 @@ def fuse(pose_graph, resolution: float, max_range: float = -1.0, discretize: boo
     semantic = isinstance(tree, SemanticOcTree)
     ids = pose_graph.sorted_ids() if hasattr(pose_graph, "sorted_ids") else sorted(
         pose_graph.nodes)
-    nodes = [pose_graph.nodes[i] for i in ids]
-    nodes = [n for n in nodes if getattr(n, "scan", None) is not None
-             and n.scan.points is not None and len(n.scan.points)]
+    nodes = [n for n in (pose_graph.nodes[i] for i in ids)
+             if getattr(n, "scan", None) is not None and n.scan.points is not None
+             and len(n.scan.points)]
     if progress:
         from tqdm import tqdm
 

@@ -263,6 +263,25 @@ def _scan_updates(pts: np.ndarray, origin: np.ndarray, res: float, max_range: fl
             counts[2])
 
 
+def _in_order(fn, items, threads: int):
+    """``fn(item)`` for each of ``items``, yielded in order, computed on ``threads`` threads
+    (at most 2 threads + 1 in flight; the rest are not started once the consumer stops)."""
+    if threads < 2:
+        yield from map(fn, items)
+        return
+    executor = _executor(threads)
+    items = iter(items)
+    pending = deque(executor.submit(fn, item) for item in itertools.islice(items, 2 * threads + 1))
+    try:
+        while pending:
+            result = pending.popleft().result()
+            pending.extend(executor.submit(fn, item) for item in itertools.islice(items, 1))
+            yield result
+    finally:
+        for future in pending:
+            future.cancel()
+
+
 def _checked_scan(points, origin) -> tuple[np.ndarray, np.ndarray]:
     pts = as_points3(points, "points")
     o = as_point3(origin, "origin")
@@ -472,10 +491,9 @@ class OcTree:
         """
         self._check_updatable()
         pts, o = _checked_scan(points, origin)
-        codes, upd, n_occ, n_nonfinite, n_oob, _n_failed = _scan_updates(
-            pts, o, self.resolution, float(max_range), bool(discretize),
-            np.float32(self.prob_hit_log), np.float32(self.prob_miss_log))
-        return self._apply_scan(pts.shape[0], codes, upd, n_occ, n_nonfinite, n_oob, lazy_eval)
+        updates = _scan_updates(pts, o, self.resolution, float(max_range), bool(discretize),
+                                np.float32(self.prob_hit_log), np.float32(self.prob_miss_log))
+        return self._apply_scan(pts.shape[0], updates, lazy_eval)
 
     def insert_point_clouds(self, scans, max_range: float = -1.0, discretize: bool = False,
                             lazy_eval: bool = False, prepare=None) -> list[InsertStats]:
@@ -501,38 +519,18 @@ class OcTree:
             return pts.shape[0], _scan_updates(pts, o, res, float(max_range), bool(discretize),
                                                hit, miss, max_shares=1)
 
-        threads = _num_threads()
-        if threads < 2:
-            stats = []
-            for item in scans:
-                n_points, (codes, upd, n_occ, n_nonfinite, n_oob, _) = mark(item)
-                stats.append(self._apply_scan(n_points, codes, upd, n_occ, n_nonfinite, n_oob,
-                                              lazy_eval))
-            return stats
-        executor = _executor(threads)
-        pending: deque = deque()
-        items = iter(scans)
         stats = []
-        try:
-            for item in itertools.islice(items, 2 * threads + 1):
-                pending.append(executor.submit(mark, item))
-            while pending:
-                n_points, (codes, upd, n_occ, n_nonfinite, n_oob, _) = pending.popleft().result()
-                for item in itertools.islice(items, 1):
-                    pending.append(executor.submit(mark, item))
-                stats.append(self._apply_scan(n_points, codes, upd, n_occ, n_nonfinite, n_oob,
-                                              lazy_eval))
-        finally:
-            for future in pending:
-                future.cancel()
+        for n_points, updates in _in_order(mark, scans, _num_threads()):
+            stats.append(self._apply_scan(n_points, updates, lazy_eval))
         return stats
 
-    def _apply_scan(self, n_points, codes, upd, n_occ, n_nonfinite, n_oob, lazy_eval,
-                    stacklevel: int = 3) -> InsertStats:
+    def _apply_scan(self, n_points: int, updates: tuple, lazy_eval: bool) -> InsertStats:
+        """Apply a scan's :func:`_scan_updates` (warning once for skipped points)."""
+        codes, upd, n_occ, n_nonfinite, n_oob, _n_failed = updates
         if n_nonfinite or n_oob:
+            # stacklevel 3: the caller of insert_point_cloud(s)
             warnings.warn(f"insert_point_cloud: skipped {n_nonfinite} non-finite points and "
-                          f"{n_oob} endpoints outside the map", RuntimeWarning,
-                          stacklevel=stacklevel)
+                          f"{n_oob} endpoints outside the map", RuntimeWarning, stacklevel=3)
         self._apply(codes, upd, lazy_eval)
         return InsertStats(int(n_points), int(codes.shape[0]) - n_occ, n_occ, int(n_nonfinite),
                            int(n_oob))

@@ -66,22 +66,19 @@ def run_map(args: argparse.Namespace) -> int:
     map_options(args)
     if args.clouds is None and Path(args.graph).suffix.lower() == ".graph":
         # the .graph records hold everything graph2tree uses: no PoseGraph, no GTSAM import
-        from estimation.fileio import check_input_file
         from estimation.scan_graph import map_scan_graph_records
         from mapping.fusion import fuse_scan_records
         from pipelines.runtime import keep_freed_memory
 
         keep_freed_memory()
-
         try:
-            check_input_file(args.graph)
+            records, _ = map_scan_graph_records(args.graph)
         except FileNotFoundError:
             raise OctofactorError(f"{args.graph}: no such file") from None
-        nodes, _ = map_scan_graph_records(args.graph)
-        if not any(node.n_points for node in nodes):
+        if not any(record.n_points for record in records):
             raise OctofactorError(f"{args.graph}: no node has a scan (give --clouds DIR for "
                                   ".g2o/TUM graphs)")
-        tree = fuse_scan_records(nodes, args.resolution, max_range=args.max_range,
+        tree = fuse_scan_records(records, args.resolution, max_range=args.max_range,
                                  discretize=args.discretize, progress=sys.stderr.isatty())
     else:
         from estimation.io import load_node_clouds, read_pose_graph

@@ -840,11 +840,11 @@ class Registration:
             ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
             diagnostic = CovarianceDiagnostic(pitch, share, ratio, ratio <= cfg.trust_ratio,
                                               cov_model, gain)
-            if reverse is not None and not unconstrained:
-                T, cov, diagnostic = self._symmetric(T, cov, diagnostic, sol, A_noise, block,
-                                                     reverse.result())
-        if reverse is not None and not reverse.done():
-            reverse.result()  # (unconstrained: not used, but not left running either)
+            if reverse is not None:
+                reverse_terms = reverse.result()  # (waited for when unused, too)
+                if not unconstrained:
+                    T, cov, diagnostic = self._symmetric(T, cov, diagnostic, sol, A_noise,
+                                                         block, reverse_terms)
         inliers = len(corr)
         if unconstrained:
             converged = False
