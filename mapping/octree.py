@@ -506,21 +506,32 @@ class OcTree:
         (optional) turns an item of ``scans`` into its ``(points, origin)`` on those threads,
         so reading or transforming a scan overlaps the work on the others (``octofactor map``
         narrows and transforms each .graph node there). At most 2 threads + 1 scans are in
-        flight. An error of a scan is raised when its turn comes: the scans before it are in
-        the tree, the others are dropped.
+        flight. Fewer scans than threads are inserted one after the other, each scan's rays
+        shared among the threads as in :meth:`insert_point_cloud`. An error of a scan is
+        raised when its turn comes: the scans before it are in the tree, the others are
+        dropped.
         """
         self._check_updatable()
         res, hit, miss = self.resolution, np.float32(self.prob_hit_log), np.float32(
             self.prob_miss_log)
 
+        threads = _num_threads()
+        items = iter(scans)
+        first = list(itertools.islice(items, threads))
+        # fewer scans than threads (a single scan, say): each scan's rays in shares on all
+        # threads instead, the scans one after the other
+        by_scan = len(first) == threads
+
         def mark(item):
             points, origin = prepare(item) if prepare else item
             pts, o = _checked_scan(points, origin)
             return pts.shape[0], _scan_updates(pts, o, res, float(max_range), bool(discretize),
-                                               hit, miss, max_shares=1)
+                                               hit, miss, max_shares=1 if by_scan else None)
 
+        results = (_in_order(mark, itertools.chain(first, items), threads) if by_scan
+                   else map(mark, first))
         stats = []
-        for n_points, updates in _in_order(mark, scans, _num_threads()):
+        for n_points, updates in results:
             stats.append(self._apply_scan(n_points, updates, lazy_eval))
         return stats
 

@@ -341,6 +341,27 @@ def test_insert_point_clouds_equals_scans_one_by_one_and_liboctomap(scan_points,
     assert len(caught) == 1 and caught[0].filename == __file__
 
 
+@pytest.mark.parametrize("n_scans", [1, 2])
+def test_insert_point_clouds_with_fewer_scans_than_threads_shares_the_rays(scan_points, n_scans,
+                                                                            monkeypatch):
+    """One or two scans on three threads: the rays of each are split among the threads (as
+    insert_point_cloud does), with the same tree and stats as one call per scan."""
+    import mapping.octree as octree_module
+
+    scans = _scan_batch(scan_points, np.random.default_rng(13))[2:2 + n_scans]  # 40k first
+    monkeypatch.setattr(octree_module, "_num_threads", lambda: 3)
+    one_by_one = OcTree(0.1)
+    ref_stats = [one_by_one.insert_point_cloud(p, o, max_range=3.0) for p, o in scans]
+    shares = []
+    real = octree_module._scan_updates
+    monkeypatch.setattr(octree_module, "_scan_updates",
+                        lambda *a, **k: shares.append(k.get("max_shares")) or real(*a, **k))
+    tree = OcTree(0.1)
+    assert tree.insert_point_clouds(iter(scans), max_range=3.0) == ref_stats
+    assert tree.to_bytes_ot() == one_by_one.to_bytes_ot()
+    assert shares == [None] * n_scans  # every thread may take a share of each scan
+
+
 def test_insert_point_clouds_prepares_on_the_threads_and_stops_at_a_failing_scan(
         scan_points, monkeypatch):
     """``prepare`` turns each item into its scan; a scan that fails raises in its turn, with
