@@ -5,7 +5,7 @@ Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs
 ``--method gicp``), run GICP-SE(3) or Semantic-ICP and write RESULT.json with T
 (T_target_source, 4x4), covariance (6x6, [rotation, translation]), converged, reason,
 iterations, inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
-model-error share, correlation ratio, re-association gain, symmetric, direction gap,
+model-error share, correlation ratio, re-association gain, symmetric, direction gap, overlap,
 covariance_trusted) and, with --gt, d_se3 (eq. (9)),
 t_err_m, r_err_rad and nees.
 
@@ -151,6 +151,8 @@ def _register(args, source, target, flip=None) -> dict:
             "symmetric": bool(diagnostic.symmetric),
             "direction_gap": (None if not diagnostic.symmetric
                               else float(diagnostic.direction_gap)),
+            "overlap": (None if np.isnan(diagnostic.overlap[0])
+                        else [float(v) for v in diagnostic.overlap]),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:

@@ -294,6 +294,7 @@ class SemanticIndex:
         self.points = points
         self.probs = probs
         labels = probs.argmax(axis=1)
+        self.labels = labels
         self.members: dict[int, np.ndarray] = {}
         self.trees: dict[int, cKDTree] = {}
         for c in np.unique(labels):
@@ -313,7 +314,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                              min_class_prob: float = 0.1,
                              nearest: tuple[np.ndarray, np.ndarray] | None = None,
                              posterior: bool = False,
-                             caches: dict | None = None) -> Correspondences:
+                             caches: dict | None = None,
+                             label_noise: float = 0.0) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
     Candidates: for each source point and each of its ``top_classes`` most probable classes c,
@@ -337,6 +339,11 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
 
     Candidates with omega below ``min_weight`` are dropped (after normalising); classes after
     the most probable one are only searched where their probability reaches ``min_class_prob``.
+
+    ``label_noise`` (epsilon): the chance that a label is wrong, whatever the probabilities
+    say. Every label agreement becomes ``(1 - epsilon) agreement + epsilon / C`` (C classes),
+    so a point whose one-hot label is wrong still votes for its geometric nearest neighbour
+    instead of putting all its posterior weight on a far candidate of its (wrong) class.
 
     ``caches``: a dict (kept by the caller for one ``d_max`` and one set of source points)
     in which a :class:`NeighbourCache` per class tree is kept, so that repeated calls while
@@ -395,7 +402,10 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     tgt = np.concatenate(tgt_rows)
     dist = np.concatenate(dists)
     # eq. (5): label agreement p(c|x_s) p(c|x_t) times the residual likelihood under T_old
-    omega = np.concatenate(prior) * np.exp(-0.5 * (dist / residual_sigma) ** 2)
+    prior = np.concatenate(prior)
+    if label_noise > 0.0:
+        prior = (1.0 - label_noise) * prior + label_noise / c_src
+    omega = prior * np.exp(-0.5 * (dist / residual_sigma) ** 2)
     if posterior:
         total = np.bincount(src, omega, minlength=n)
         omega = omega / np.maximum(total[src], 1e-300)
