@@ -1,0 +1,112 @@
+"""Registration on a real RGB-D room against its 3 cm voxel map (issue 14's held-out setting).
+
+The room is fused from the real TUM fr1/rpy depth frames in shared/data/rgbd
+(benchmarks/registration_indoor.py builds the same case; every trial is another raw half of
+the room with 5 mm noise and 10 % wrong labels, moved by a known transform, against the same
+map of voxel centroids). Checked: the forward estimate is kept because the source lies inside
+the map (the midpoint, forced, is far less consistent and less accurate there); Semantic-ICP's
+label noise keeps wrong one-hot labels from pulling it off. Known gap (strict xfail): the
+mean NEES is above the chi-square bounds (the map's representation error is not modelled).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.registration import D_FINAL, OFFSETS, register_ours
+from benchmarks.registration_indoor import Cloud, half_room_source, room_cloud, voxel_map
+from estimation.covariance import check_consistency, nees
+from estimation.registration import RegistrationConfig, gicp, pose_error
+from estimation.registration.correspondences import SemanticIndex, semantic_correspondences
+from estimation.registration.metrics import offset_about_centroid
+
+N_TRIALS = 30
+
+
+@pytest.fixture(scope="module")
+def room():
+    points, labels = room_cloud("tum", step=10)
+    return points, labels, Cloud(*voxel_map(points, labels, "centroids"))
+
+
+def trials(room, n, **options):
+    points, labels, target = room
+    out = []
+    for seed in range(n):
+        rng = np.random.default_rng(seed)
+        source, T_gt = half_room_source(points, labels, rng)
+        metres, degrees, d0 = OFFSETS["small"]
+        init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
+        result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
+        out.append((result, pose_error(result.T, T_gt)))
+    return out
+
+
+@pytest.fixture(scope="module")
+def forward(room):
+    return trials(room, N_TRIALS)
+
+
+@pytest.mark.slow
+def test_the_forward_estimate_is_kept_when_the_source_lies_inside_the_map(forward):
+    for r, _ in forward:
+        assert r.converged and not r.diagnostic.symmetric
+        covered, covering = r.diagnostic.overlap
+        assert covered >= gicp.INSIDE_COVERAGE and covering < covered - gicp.INSIDE_MARGIN
+
+
+@pytest.mark.slow
+def test_the_midpoint_would_be_far_less_consistent_there(room, forward, monkeypatch):
+    # negative control of the overlap rule: the midpoint forced where it does not apply
+    # (measured: mean NEES 33 against 7-12 for the forward estimate, and less accurate)
+    monkeypatch.setattr(gicp, "source_inside_target", lambda *overlap: False)
+    out = trials(room, 10)
+    assert all(r.diagnostic.symmetric for r, _ in out)
+    mid = np.array([nees(err.tangent, r.covariance) for r, err in out])
+    fwd = np.array([nees(err.tangent, r.covariance) for r, err in forward[:10]])
+    assert not check_consistency(mid, dof=6).passed
+    assert mid.mean() > 2.0 * fwd.mean(), (mid.mean(), fwd.mean())
+    assert np.median([a.d_se3 / b.d_se3 for (_, a), (_, b) in zip(out, forward)]) > 1.2
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 14, open: on voxel-centroid maps of real rooms "
+                   "the covariance misses the map's own representation error (mean NEES "
+                   "9.6 here, 11.8 on the benchmark's room; docs/registration.md)")
+def test_covariance_is_consistent_on_a_real_room_against_its_voxel_map(forward):
+    values = np.array([nees(err.tangent, r.covariance) for r, err in forward])
+    assert not check_consistency(np.array(
+        [nees(err.tangent, 0.1 * r.covariance) for r, err in forward]), dof=6).passed
+    check = check_consistency(values, dof=6)
+    assert check.passed, check
+
+
+@pytest.mark.slow
+def test_label_noise_keeps_wrong_labels_from_pulling_semantic_icp(room):
+    auto = trials(room, 10, semantic=True)
+    none = trials(room, 10, semantic=True, label_noise=0.0)
+    ratio = np.median([a.d_se3 / b.d_se3 for (_, a), (_, b) in zip(auto, none)])
+    assert ratio < 0.9, ratio
+
+
+def test_label_noise_gives_a_wrongly_labelled_point_its_nearest_neighbour():
+    # target: class 0 at the origin, class 1 at 0.15 m; the source point sits on the class-0
+    # point but is labelled 1 (wrong, one-hot)
+    index = SemanticIndex(np.array([[0.0, 0, 0], [0.15, 0, 0]]), np.eye(2))
+    moved = np.array([[0.001, 0, 0]])
+    nearest = (np.array([0.001]), np.array([0]))
+    kwargs = dict(d_max=0.2, residual_sigma=0.01, nearest=nearest, posterior=True)
+    plain = semantic_correspondences(moved, np.array([[0.0, 1.0]]), index, **kwargs)
+    assert list(plain.target_idx) == [1]  # the labels as given: all weight on the far point
+    noisy = semantic_correspondences(moved, np.array([[0.0, 1.0]]), index, label_noise=0.1,
+                                     **kwargs)
+    assert noisy.target_idx[np.argmax(noisy.weights)] == 0
+    assert noisy.weights.max() > 0.99
+
+
+def test_label_noise_is_checked():
+    from estimation.errors import EstimationError
+
+    for bad in (-0.1, 1.0, "often"):
+        with pytest.raises(EstimationError, match="label_noise"):
+            RegistrationConfig(label_noise=bad)
