@@ -53,7 +53,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.registration import OFFSETS, D_FINAL, register_ours, run_open3d  # noqa: E402
+from benchmarks.registration import D_FINAL, OFFSETS, register_ours, run_open3d  # noqa: E402
 from estimation.covariance import chi2_bounds, nees  # noqa: E402
 from estimation.fileio import atomic_write  # noqa: E402
 from estimation.registration import pose_error  # noqa: E402
