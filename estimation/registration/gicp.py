@@ -158,7 +158,9 @@ class RegistrationConfig:
         (``Registration._symmetric``). Nearest-neighbour matching is not symmetric: on the
         real scan splits the one-direction estimate carried an error every split repeats
         (mean NEES 8.56, 6.38 with the midpoint); costs about +30 % of a registration there.
-        False = the forward direction only (the earlier estimate)
+        Not where the source lies inside the target (:func:`source_inside_target`: a part
+        registered to its map, where only the reverse direction has a boundary): the forward
+        estimate is kept there. False = the forward direction only (the earlier estimate)
     tilted_planes : with a quantisation term, slabs whose matched lattice points cross
         layers along a planar trend (:func:`tilted_groups`: planes tilted against the lattice,
         whose quantisation is a sawtooth along the plane, not one common offset) get no
