@@ -58,6 +58,7 @@ from estimation.covariance import chi2_bounds, nees  # noqa: E402
 from estimation.fileio import atomic_write  # noqa: E402
 from estimation.registration import pose_error  # noqa: E402
 from estimation.registration.metrics import offset_about_centroid  # noqa: E402
+from perception.semantic_cloud import SemanticCloud  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd"
 # folder, pinhole intrinsics (fx fy cx cy, 640 x 480), lens distortion (OpenCV order) or None
@@ -69,12 +70,9 @@ PITCH = 0.03
 METHODS = ("gicp-se3", "semantic-icp", "open3d-gicp")
 
 
-class Cloud:
-    """Points and one-hot class probabilities (what the benchmark's run functions read)."""
-
-    def __init__(self, points: np.ndarray, labels: np.ndarray):
-        self.points = points
-        self.probs = np.eye(N_CLASSES, dtype=np.float32)[labels]
+def labelled(points: np.ndarray, labels: np.ndarray) -> SemanticCloud:
+    """The cloud with one-hot class probabilities (what the benchmark's run functions read)."""
+    return SemanticCloud.from_labels(points, labels, N_CLASSES)
 
 
 def room_cloud(name: str, step: int = 5, data: Path = DATA) -> tuple[np.ndarray, np.ndarray]:
@@ -124,7 +122,7 @@ def voxel_map(points: np.ndarray, labels: np.ndarray, kind: str, pitch: float = 
 
 def half_room_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
                      n: int = 15000, noise: float = 0.005, wrong: float = 0.1
-                     ) -> tuple[Cloud, np.ndarray]:
+                     ) -> tuple[SemanticCloud, np.ndarray]:
     """Return (source cloud in its own frame, T_target_source) of one trial."""
     angle = rng.uniform(0.0, 2.0 * np.pi)
     side = np.flatnonzero((points - points.mean(axis=0)) @ [np.cos(angle), np.sin(angle), 0] > 0)
@@ -138,12 +136,12 @@ def half_room_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Gene
     axis /= np.linalg.norm(axis)
     T = gtsam.Pose3(gtsam.Rot3.Rodrigues(axis * np.deg2rad(rng.uniform(5.0, 30.0))),
                     rng.normal(size=3)).matrix()
-    return Cloud((source - T[:3, 3]) @ T[:3, :3], source_labels), T
+    return labelled((source - T[:3, 3]) @ T[:3, :3], source_labels), T
 
 
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0) -> dict:
     """Return every trial's numbers of one (room, map kind, offset) cell."""
-    target = Cloud(*voxel_map(points, labels, kind))
+    target = labelled(*voxel_map(points, labels, kind))
     metres, degrees, d0 = OFFSETS[offset]
     rows = {m: [] for m in methods}
     for trial in range(seed0, seed0 + trials):
@@ -217,7 +215,7 @@ def main(argv=None) -> int:
         points, labels = room_cloud(name, args.step)
         print(f"{name} room: {len(points)} points, classes {np.bincount(labels).tolist()}")
         # compile/load the numba kernels outside the timings
-        warm = Cloud(points[::50], labels[::50])
+        warm = labelled(points[::50], labels[::50])
         register_ours(warm, warm, np.eye(4), (D_FINAL,))
         for kind in args.maps.split(","):
             for offset in args.offsets.split(","):

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import Cloud, half_room_source, room_cloud, voxel_map
+from benchmarks.registration_indoor import half_room_source, labelled, room_cloud, voxel_map
 from estimation.covariance import check_consistency, nees
 from estimation.registration import RegistrationConfig, gicp, pose_error
 from estimation.registration.correspondences import SemanticIndex, semantic_correspondences
@@ -26,7 +26,7 @@ N_TRIALS = 30
 @pytest.fixture(scope="module")
 def room():
     points, labels = room_cloud("tum", step=10)
-    return points, labels, Cloud(*voxel_map(points, labels, "centroids"))
+    return points, labels, labelled(*voxel_map(points, labels, "centroids"))
 
 
 def trials(room, n, **options):
