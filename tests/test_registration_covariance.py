@@ -18,8 +18,8 @@ from perception.simulation.room import noisy_labels
 N_TRIALS = 30
 
 
-def monte_carlo(sigma: float, covariance: str, gaps: list | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+def monte_carlo(sigma: float, covariance: str, gaps: list | None = None,
+                trusted: list | None = None) -> tuple[np.ndarray, np.ndarray]:
     errors, covs = [], []
     for seed in range(N_TRIALS):
         source, _, target, _, T_gt = make_pair(1000 + seed, 2000, sigma)
@@ -30,16 +30,21 @@ def monte_carlo(sigma: float, covariance: str, gaps: list | None = None
         covs.append(result.covariance)
         if gaps is not None:
             gaps.append(result.diagnostic.direction_gap)
+        if trusted is not None:
+            trusted.append(result.diagnostic.trusted)
     return np.array(errors), np.array(covs)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("sigma", [0.002, 0.01])
 def test_sandwich_covariance_is_consistent(sigma):
-    gaps = []
-    errors, covs = monte_carlo(sigma, "sandwich", gaps)
+    gaps, trusted = [], []
+    errors, covs = monte_carlo(sigma, "sandwich", gaps, trusted)
     check = check_consistency(nees(errors, covs), dof=6)
     assert check.passed, check
+    # consistent here, and flagged so (the overlap-based distrust must not fire: the clouds
+    # cover each other, neither lies inside the other)
+    assert all(trusted)
     # negative control: the same covariance, 10x over-confident, must fail
     assert not check_consistency(nees(errors, covs * 0.1), dof=6).passed
     # the symmetric midpoint's direction gap is chi-square(6) where the two directions
