@@ -968,11 +968,11 @@ class Registration:
         if sol is None:
             return None
         H_normal = self._normal_information(T_inv, sol.src, sol.normals, sol.w)
-        if covariance_from_information(sol.A, None, self._scale(sol.src), H_normal,
-                                       self.config.degeneracy_ratio)[1]:
-            return None  # the reverse leaves a direction unconstrained: no Newton step
         summed = cluster_sums(sol.src, sol.scores, block)
-        fixed = np.linalg.solve(sol.A, np.linalg.solve(sol.A, summed.T @ summed).T)
+        fixed, unconstrained = covariance_from_information(
+            sol.A, summed.T @ summed, self._scale(sol.src), H_normal, self.config.degeneracy_ratio)
+        if unconstrained:
+            return None  # the reverse leaves a direction unconstrained: no Newton step
         A_noise = sol.A if self.config.reassociation_step is None else \
             rev.reassociation_hessian(T_inv, d_max, sol, fixed)
         eta = -np.linalg.solve(A_noise, sol.scores.sum(axis=0))
