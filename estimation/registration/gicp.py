@@ -252,11 +252,12 @@ class RegistrationConfig:
                 isinstance(self.quantisation, (int, float)) and self.quantisation > 0):
             raise EstimationError(f"quantisation must be positive, 'auto' or None, "
                                   f"got {self.quantisation!r}")
-        if self.reassociation_step is not None and not (
-                isinstance(self.reassociation_step, (int, float))
-                and math.isfinite(self.reassociation_step) and self.reassociation_step > 0):
-            raise EstimationError(f"reassociation_step must be a positive finite number or "
-                                  f"None, got {self.reassociation_step!r}")
+        for name in ("reassociation_step", "boundary_gate"):
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (int, float))
+                                          and math.isfinite(value) and value > 0):
+                raise EstimationError(f"{name} must be a positive finite number or None, "
+                                      f"got {value!r}")
         for name in ("symmetric", "tilted_planes"):
             if not isinstance(getattr(self, name), (bool, np.bool_)):
                 raise EstimationError(
@@ -265,11 +266,6 @@ class RegistrationConfig:
                 isinstance(self.label_noise, (int, float)) and 0.0 <= self.label_noise < 1.0):
             raise EstimationError(f"label_noise must be in [0, 1) or 'auto', "
                                   f"got {self.label_noise!r}")
-        if self.boundary_gate is not None and not (
-                isinstance(self.boundary_gate, (int, float))
-                and math.isfinite(self.boundary_gate) and self.boundary_gate > 0):
-            raise EstimationError(f"boundary_gate must be a positive finite number or None, "
-                                  f"got {self.boundary_gate!r}")
         if self.surface_radius is not None and self.surface_radius != "auto" and not (
                 isinstance(self.surface_radius, (int, float)) and self.surface_radius > 0):
             raise EstimationError(f"surface_radius must be positive, 'auto' or None, "
@@ -676,7 +672,8 @@ class Registration:
     @property
     def boundary_radius(self) -> float:
         """Median distance (m) from a target point to its k-th nearest neighbour (a sample
-        of 500): the scale of ``boundary_gate``."""
+        of 500): the scale of ``boundary_gate`` and, times ``cluster_factor``, the
+        sandwich's block edge (:meth:`cluster_size`)."""
         if self._boundary_radius is None:
             self._boundary_radius = self._median_radius(self.target, self.target_tree)
         return self._boundary_radius
@@ -998,7 +995,8 @@ class Registration:
         has sampled too.
         """
         if self._source_block is None:
-            self._source_block = self._block_edge(self.source, self.source_tree)
+            self._source_block = self.config.cluster_factor * self._median_radius(
+                self.source, self.source_tree)
         radius = max(block, self._source_block)
         src = self.source[:: max(1, len(self.source) // OVERLAP_SAMPLES)]
         tgt = self.target[:: max(1, len(self.target) // OVERLAP_SAMPLES)]
@@ -1160,14 +1158,8 @@ class Registration:
         if self.config.cluster_size is not None:
             return self.config.cluster_size
         if self._block is None:
-            self._block = self._block_edge(self.target, self.target_tree)
+            self._block = self.config.cluster_factor * self.boundary_radius
         return self._block
-
-    def _block_edge(self, points: np.ndarray, tree: cKDTree) -> float:
-        """cluster_factor times the median k-neighbourhood radius of ``points``."""
-        if points is self.target:
-            return self.config.cluster_factor * self.boundary_radius
-        return self.config.cluster_factor * self._median_radius(points, tree)
 
     def _median_radius(self, points: np.ndarray, tree: cKDTree) -> float:
         """Median distance to the k-th nearest neighbour over a sample of 500 ``points``."""
