@@ -24,6 +24,8 @@ from benchmarks.registration import D_FINAL, OFFSETS, register_ours
 from benchmarks.registration_indoor import (
     half_room_source,
     labelled,
+    phase_covariance,
+    phase_maps,
     room_cloud,
     room_part_source,
     voxel_map,
@@ -155,6 +157,25 @@ def test_covariance_is_consistent_on_a_real_room_against_its_voxel_map(forward):
         [nees(err.tangent, 0.1 * r.covariance) for r, err in forward]), dof=6).passed
     check = check_consistency(values, dof=6)
     assert check.passed, check
+
+
+@pytest.mark.slow
+def test_the_gap_is_where_the_voxel_grid_cuts_the_room(room, forward):
+    # the diagnosis of the xfail above (docs/registration.md, "Where the room gap comes
+    # from"): the room's own points voxelised again at other grid phases move the estimate
+    # by about its error; that spread, added to the reported covariance, closes most of the
+    # gap (measured on the benchmark's rooms: TUM 11.9 -> 7.3, ICL-NUIM 460 -> 12.9)
+    points, labels, _ = room
+    maps = phase_maps(points, labels, "centroids", 8)
+    plain, with_phase, spread = [], [], []
+    for seed, (r, err) in enumerate(forward[:6]):
+        source, _ = half_room_source(points, labels, np.random.default_rng(seed))
+        C = phase_covariance(source.points, maps, r.T)
+        plain.append(nees(err.tangent, r.covariance))
+        with_phase.append(nees(err.tangent, r.covariance + C))
+        spread.append(np.trace(C[3:, 3:]) / np.trace(r.covariance[3:, 3:]))
+    assert np.median(spread) > 0.25, spread  # the phase alone moves it by half a sigma or more
+    assert np.mean(with_phase) < 0.75 * np.mean(plain), (plain, with_phase)
 
 
 @pytest.mark.slow
