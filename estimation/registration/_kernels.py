@@ -203,6 +203,44 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
 
 
 @numba.njit(cache=True)
+def gicp_normal_equations(T: np.ndarray, source: np.ndarray, target: np.ndarray,
+                          Ut: np.ndarray, w: np.ndarray):
+    """Return (H (6,6), g (6,)) = (sum_k w_k J_k^T J_k, sum_k w_k J_k^T U_k^T r_k) of
+    :func:`gicp_terms` (unscaled) without forming the (M, 3, 6) Jacobians."""
+    n = source.shape[0]
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    UR = np.empty((3, 3))
+    Jr = np.empty(6)
+    for m in range(n):
+        x0, x1, x2 = source[m, 0], source[m, 1], source[m, 2]
+        r0 = target[m, 0] - (T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3])
+        r1 = target[m, 1] - (T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3])
+        r2 = target[m, 2] - (T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3])
+        wm = w[m]
+        for i in range(3):
+            v = Ut[m, i, 0] * r0 + Ut[m, i, 1] * r1 + Ut[m, i, 2] * r2
+            for j in range(3):
+                UR[i, j] = Ut[m, i, 0] * T[0, j] + Ut[m, i, 1] * T[1, j] \
+                    + Ut[m, i, 2] * T[2, j]
+            Jr[0] = UR[i, 1] * x2 - UR[i, 2] * x1
+            Jr[1] = UR[i, 2] * x0 - UR[i, 0] * x2
+            Jr[2] = UR[i, 0] * x1 - UR[i, 1] * x0
+            Jr[3] = -UR[i, 0]
+            Jr[4] = -UR[i, 1]
+            Jr[5] = -UR[i, 2]
+            for a in range(6):
+                wa = wm * Jr[a]
+                g[a] += wa * v
+                for b in range(a, 6):
+                    H[a, b] += wa * Jr[b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g
+
+
+@numba.njit(cache=True)
 def cached_nearest(points, anchor, reach, candidates, target, d_max):
     """Nearest cached candidate of each point within d_max (inf / -1 when none), and the
     rows whose displacement from their anchor exceeds ``reach`` (stale: query again)."""

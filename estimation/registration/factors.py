@@ -86,6 +86,33 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
     return GicpTerms(rw, J if jacobians else None, e)
 
 
+def normal_equations(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
+                     weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(sum_k w_k J_k^T J_k, sum_k w_k J_k^T r_k)`` (whitened, as :func:`gicp_terms`)
+    in one pass, without the (M, 3, 6) Jacobians."""
+    return _kernels.gicp_normal_equations(np.ascontiguousarray(T, dtype=float),
+                                          np.ascontiguousarray(source, dtype=float),
+                                          np.ascontiguousarray(target, dtype=float),
+                                          np.ascontiguousarray(Ut, dtype=float),
+                                          np.ascontiguousarray(weights, dtype=float))
+
+
+def gauss_newton_step(T: np.ndarray, H: np.ndarray, g: np.ndarray, key: int) -> np.ndarray:
+    """Return the 4x4 pose after one Gauss-Newton step of the weighted least-squares problem
+    with information ``H`` and gradient ``g = sum w J^T r`` (:func:`normal_equations`), solved
+    by GTSAM: a :class:`gtsam.HessianFactor` eliminated by ``GaussianFactorGraph.optimize``
+    and retracted by ``Values.retract``, as ``GaussNewtonOptimizer`` does with the batched
+    factor's linearisation (its Cholesky elimination forms the same ``J^T J``; the optimiser
+    also evaluates the cost twice more, which one step does not use).
+    """
+    graph = gtsam.GaussianFactorGraph()
+    # the linearised factor is ||J dx + r||^2: G = J^T J, the linear term J^T (-r)
+    graph.add(gtsam.HessianFactor(key, H, -g, 0.0))
+    values = gtsam.Values()
+    values.insert(key, gtsam.Pose3(T))
+    return values.retract(graph.optimize()).atPose3(key).matrix()
+
+
 class BatchedGicpFactor:
     """One :class:`gtsam.CustomFactor` holding every correspondence of a cloud pair.
 

@@ -38,7 +38,9 @@ from .factors import (
     BatchedGicpFactor,
     cauchy_loss,
     cauchy_weight,
+    gauss_newton_step,
     gicp_terms,
+    normal_equations,
     robust_factors,
     solve_weighted,
     whitening,
@@ -812,12 +814,18 @@ class Registration:
             e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
             self._update_alpha(e)
             cost_log.append(self._cost(e, corr.weights))
-            if cfg.factors == "batched":
-                factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
-            else:  # GTSAM applies the Cauchy kernel itself, one factor per correspondence
-                factor = robust_factors(key, src, tgt, Ut, corr.weights, self._alpha,
-                                        cfg.semantic_weight if self.semantic else "outside")
-            T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations, key)
+            if cfg.factors == "batched" and cfg.optimizer == "gn" and cfg.inner_iterations == 1:
+                # one Gauss-Newton step of the batched factor, from its normal equations
+                # (GaussNewtonOptimizer would evaluate the factor three times)
+                H, g = normal_equations(T, src, tgt, Ut, self._weights(e, corr.weights))
+                T_new = gauss_newton_step(T, H, g, key)
+            else:
+                if cfg.factors == "batched":
+                    factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
+                else:  # GTSAM applies the Cauchy kernel itself, one factor per correspondence
+                    factor = robust_factors(key, src, tgt, Ut, corr.weights, self._alpha,
+                                            cfg.semantic_weight if self.semantic else "outside")
+                T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations, key)
             step = np.linalg.norm(gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new))))
             # nearest-neighbour sets can alternate forever between two poses
             two_cycle = T_prev is not None and np.linalg.norm(gtsam.Pose3.Logmap(
