@@ -86,6 +86,17 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
     return GicpTerms(rw, J if jacobians else None, e)
 
 
+def tangential_squares(T: np.ndarray, source: np.ndarray, target: np.ndarray,
+                       cov_target: np.ndarray, epsilon: float) -> np.ndarray:
+    """Return (M,) the squared component of ``T x_s - x_t`` in the target's tangent plane,
+    for target covariances ``I - (1 - epsilon) n n^T`` (one pass, no (M, 3, 3) temporaries)."""
+    return _kernels.tangential_squares(np.ascontiguousarray(T, dtype=float),
+                                       np.ascontiguousarray(source, dtype=float),
+                                       np.ascontiguousarray(target, dtype=float),
+                                       np.ascontiguousarray(cov_target, dtype=float),
+                                       float(epsilon))
+
+
 def normal_equations(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
                      weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(sum_k w_k J_k^T J_k, sum_k w_k J_k^T r_k)`` (whitened, as :func:`gicp_terms`)

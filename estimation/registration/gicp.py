@@ -43,6 +43,7 @@ from .factors import (
     normal_equations,
     robust_factors,
     solve_weighted,
+    tangential_squares,
     whitening,
 )
 
@@ -654,11 +655,8 @@ class Registration:
                 or d_max > self.config.max_correspondence_distance * (1 + 1e-9)):
             return corr
         src, tgt = self.matched_points(corr)
-        r = transform_points(T, src) - tgt
-        eps = self.config.epsilon
-        normal = np.einsum("ni,nij,nj->n", r, np.eye(3) - self.target_cov[corr.target_idx],
-                           r) / (1.0 - eps)
-        tangential = np.maximum(np.einsum("ni,ni->n", r, r) - normal, 0.0)
+        tangential = tangential_squares(T, src, tgt, self.target_cov[corr.target_idx],
+                                        self.config.epsilon)
         # exp(-(t / tau)^4 / 2): 0.61 at tau, 0.08 at 1.5 tau; smooth, so the pair set does
         # not flicker at a hard threshold (3 cm noise: 3/30 runs never converged with a hard
         # gate at 0.4, 0/30 with this one). On a random sampling a pair over the surface keeps
