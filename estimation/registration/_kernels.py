@@ -118,6 +118,45 @@ def neighbour_covariances(points: np.ndarray, idx: np.ndarray, epsilon: float) -
 
 
 @numba.njit(cache=True)
+def _whiten_into(out: np.ndarray, cov_target: np.ndarray, cov_source: np.ndarray,
+                 R: np.ndarray, C: np.ndarray, RS: np.ndarray) -> None:
+    """Write U^T of one pair into the (3, 3) ``out`` (see :func:`whitening`)."""
+    for i in range(3):
+        for j in range(3):
+            RS[i, j] = R[i, 0] * cov_source[0, j] + R[i, 1] * cov_source[1, j] \
+                + R[i, 2] * cov_source[2, j]
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = cov_target[i, j] + RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] \
+                + RS[i, 2] * R[j, 2]
+    # symmetric 3x3 inverse by cofactors
+    a, b, c = C[0, 0], 0.5 * (C[0, 1] + C[1, 0]), 0.5 * (C[0, 2] + C[2, 0])
+    d, e, f = C[1, 1], 0.5 * (C[1, 2] + C[2, 1]), C[2, 2]
+    A00 = d * f - e * e
+    A01 = c * e - b * f
+    A02 = b * e - c * d
+    det = a * A00 + b * A01 + c * A02
+    A11 = a * f - c * c
+    A12 = b * c - a * e
+    A22 = a * d - b * b
+    i00, i01, i02 = A00 / det, A01 / det, A02 / det
+    i11, i12, i22 = A11 / det, A12 / det, A22 / det
+    # Cholesky L of the information matrix; U^T = L^T
+    l00 = np.sqrt(i00)
+    l10 = i01 / l00
+    l20 = i02 / l00
+    l11 = np.sqrt(i11 - l10 * l10)
+    l21 = (i12 - l20 * l10) / l11
+    l22 = np.sqrt(i22 - l20 * l20 - l21 * l21)
+    out[0, 0] = l00
+    out[0, 1] = l10
+    out[0, 2] = l20
+    out[1, 1] = l11
+    out[1, 2] = l21
+    out[2, 2] = l22
+
+
+@numba.njit(cache=True)
 def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Return (M, 3, 3) U^T with U U^T = (Sigma_t + R Sigma_s R^T)^-1 (U lower Cholesky)."""
     n = cov_target.shape[0]
@@ -125,39 +164,21 @@ def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> 
     C = np.empty((3, 3))
     RS = np.empty((3, 3))
     for m in range(n):
-        for i in range(3):
-            for j in range(3):
-                RS[i, j] = R[i, 0] * cov_source[m, 0, j] + R[i, 1] * cov_source[m, 1, j] \
-                    + R[i, 2] * cov_source[m, 2, j]
-        for i in range(3):
-            for j in range(3):
-                C[i, j] = cov_target[m, i, j] + RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] \
-                    + RS[i, 2] * R[j, 2]
-        # symmetric 3x3 inverse by cofactors
-        a, b, c = C[0, 0], 0.5 * (C[0, 1] + C[1, 0]), 0.5 * (C[0, 2] + C[2, 0])
-        d, e, f = C[1, 1], 0.5 * (C[1, 2] + C[2, 1]), C[2, 2]
-        A00 = d * f - e * e
-        A01 = c * e - b * f
-        A02 = b * e - c * d
-        det = a * A00 + b * A01 + c * A02
-        A11 = a * f - c * c
-        A12 = b * c - a * e
-        A22 = a * d - b * b
-        i00, i01, i02 = A00 / det, A01 / det, A02 / det
-        i11, i12, i22 = A11 / det, A12 / det, A22 / det
-        # Cholesky L of the information matrix; U^T = L^T
-        l00 = np.sqrt(i00)
-        l10 = i01 / l00
-        l20 = i02 / l00
-        l11 = np.sqrt(i11 - l10 * l10)
-        l21 = (i12 - l20 * l10) / l11
-        l22 = np.sqrt(i22 - l20 * l20 - l21 * l21)
-        out[m, 0, 0] = l00
-        out[m, 0, 1] = l10
-        out[m, 0, 2] = l20
-        out[m, 1, 1] = l11
-        out[m, 1, 2] = l21
-        out[m, 2, 2] = l22
+        _whiten_into(out[m], cov_target[m], cov_source[m], R, C, RS)
+    return out
+
+
+@numba.njit(cache=True)
+def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: np.ndarray,
+                   source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """:func:`whitening` of the pairs (cov_target[target_rows[m]], cov_source[source_rows[m]])
+    without gathering them first."""
+    n = target_rows.shape[0]
+    out = np.zeros((n, 3, 3))
+    C = np.empty((3, 3))
+    RS = np.empty((3, 3))
+    for m in range(n):
+        _whiten_into(out[m], cov_target[target_rows[m]], cov_source[source_rows[m]], R, C, RS)
     return out
 
 

@@ -130,6 +130,11 @@ class LazyCovariances:
         self._fill(idx)
         return self.values[idx]
 
+    def filled(self, idx: np.ndarray) -> np.ndarray:
+        """Return the whole (N, 3, 3) array with (at least) the rows ``idx`` computed."""
+        self._fill(idx)
+        return self.values
+
     def means(self, idx: np.ndarray) -> np.ndarray:
         """Return the local means of rows ``idx`` (requires ``radius``)."""
         self._fill(idx)

@@ -69,6 +69,17 @@ def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> 
                               np.ascontiguousarray(R, dtype=float))
 
 
+def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: np.ndarray,
+                   source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """:func:`whitening` of ``cov_target[target_rows]`` and ``cov_source[source_rows]``,
+    without gathering the (M, 3, 3) stacks first (the same numbers)."""
+    return _kernels.whitening_rows(np.ascontiguousarray(cov_target, dtype=float),
+                                   np.ascontiguousarray(target_rows, dtype=np.int64),
+                                   np.ascontiguousarray(cov_source, dtype=float),
+                                   np.ascontiguousarray(source_rows, dtype=np.int64),
+                                   np.ascontiguousarray(R, dtype=float))
+
+
 def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
                jacobians: bool = True, sqrt_weights: np.ndarray | None = None) -> GicpTerms:
     """Return whitened residuals (and Jacobians) of eq. (3) at the 4x4 ``T``.

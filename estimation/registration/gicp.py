@@ -44,7 +44,7 @@ from .factors import (
     robust_factors,
     solve_weighted,
     tangential_squares,
-    whitening,
+    whitening_rows,
 )
 
 # Cauchy tuning constant for 95 % asymptotic efficiency at Gaussian residuals (Holland and
@@ -435,6 +435,11 @@ def _as_transform(T: np.ndarray | gtsam.Pose3 | None) -> np.ndarray:
     return gtsam.Pose3(T).matrix()  # re-orthonormalises the rotation
 
 
+def _rows_of(cov: np.ndarray | LazyCovariances, rows: np.ndarray) -> np.ndarray:
+    """The full (N, 3, 3) covariance array with ``rows`` available (computed if lazy)."""
+    return cov.filled(rows) if isinstance(cov, LazyCovariances) else cov
+
+
 _REVERSE_EXECUTOR = None
 
 
@@ -639,6 +644,12 @@ class Registration:
         return self._gated(T, d_max, nearest_correspondences(moved, self.target_tree, d_max,
                                                              cache))
 
+    def _whitening(self, corr: Correspondences, R: np.ndarray) -> np.ndarray:
+        """Return the (M, 3, 3) whitening of ``corr`` at rotation ``R`` (:func:`whitening`),
+        read from the covariance arrays by row (no gathered copies)."""
+        return whitening_rows(_rows_of(self.target_cov, corr.target_idx), corr.target_idx,
+                              _rows_of(self.source_cov, corr.source_idx), corr.source_idx, R)
+
     def _gated(self, T: np.ndarray, d_max: float, corr: Correspondences) -> Correspondences:
         """Return ``corr`` with the pairs beyond the target's surface down-weighted or dropped
         (``boundary_gate``).
@@ -807,8 +818,7 @@ class Registration:
                                        f"d_max={d:g} m (need {cfg.min_inliers})",
                                     start, iterations, cost_log)
             src, tgt = self.matched_points(corr)
-            Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
-                           T[:3, :3])
+            Ut = self._whitening(corr, T[:3, :3])
             e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
             self._update_alpha(e)
             cost_log.append(self._cost(e, corr.weights))
@@ -855,8 +865,7 @@ class Registration:
         if len(corr) < self.config.min_inliers:
             return None
         src, tgt = self.matched_points(corr)
-        Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
-                       T[:3, :3])
+        Ut = self._whitening(corr, T[:3, :3])
         terms = gicp_terms(T, src, tgt, Ut)
         w = self._weights(terms.mahalanobis, corr.weights)
         Jflat = (terms.jacobians * np.sqrt(w)[:, None, None]).reshape(-1, 6)
@@ -1125,8 +1134,7 @@ class Registration:
                 self._sigma = sigma
                 return A
             src, tgt = self.matched_points(corr)
-            Ut = whitening(self.target_cov[corr.target_idx],
-                           self.source_cov[corr.source_idx], T_i[:3, :3])
+            Ut = self._whitening(corr, T_i[:3, :3])
             terms = gicp_terms(T_i, src, tgt, Ut)
             w = self._weights(terms.mahalanobis, corr.weights)
             # sum_k w_k J_k^T r_k as one matrix-vector product
