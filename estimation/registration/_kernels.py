@@ -263,9 +263,11 @@ def gicp_normal_equations(T: np.ndarray, source: np.ndarray, target: np.ndarray,
 
 @numba.njit(cache=True)
 def tangential_squares(T: np.ndarray, source: np.ndarray, target: np.ndarray,
-                       cov_target: np.ndarray, epsilon: float) -> np.ndarray:
+                       cov_target: np.ndarray, target_rows: np.ndarray,
+                       epsilon: float) -> np.ndarray:
     """Return (M,) the squared component of ``r = T x_s - x_t`` in the target's tangent
-    plane: ``max(r.r - r^T (I - C) r / (1 - epsilon), 0)`` (``C = I - (1 - eps) n n^T``)."""
+    plane: ``max(r.r - r^T (I - C) r / (1 - epsilon), 0)`` (``C = I - (1 - eps) n n^T``,
+    ``cov_target[target_rows[m]]``)."""
     n = source.shape[0]
     out = np.empty(n)
     for m in range(n):
@@ -273,7 +275,7 @@ def tangential_squares(T: np.ndarray, source: np.ndarray, target: np.ndarray,
         r0 = T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3] - target[m, 0]
         r1 = T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3] - target[m, 1]
         r2 = T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3] - target[m, 2]
-        C = cov_target[m]
+        C = cov_target[target_rows[m]]
         q0 = (1.0 - C[0, 0]) * r0 - C[0, 1] * r1 - C[0, 2] * r2
         q1 = -C[1, 0] * r0 + (1.0 - C[1, 1]) * r1 - C[1, 2] * r2
         q2 = -C[2, 0] * r0 - C[2, 1] * r1 + (1.0 - C[2, 2]) * r2

@@ -98,13 +98,16 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
 
 
 def tangential_squares(T: np.ndarray, source: np.ndarray, target: np.ndarray,
-                       cov_target: np.ndarray, epsilon: float) -> np.ndarray:
+                       cov_target: np.ndarray, target_rows: np.ndarray,
+                       epsilon: float) -> np.ndarray:
     """Return (M,) the squared component of ``T x_s - x_t`` in the target's tangent plane,
-    for target covariances ``I - (1 - epsilon) n n^T`` (one pass, no (M, 3, 3) temporaries)."""
+    for target covariances ``cov_target[target_rows] = I - (1 - epsilon) n n^T`` (one pass,
+    no (M, 3, 3) temporaries)."""
     return _kernels.tangential_squares(np.ascontiguousarray(T, dtype=float),
                                        np.ascontiguousarray(source, dtype=float),
                                        np.ascontiguousarray(target, dtype=float),
                                        np.ascontiguousarray(cov_target, dtype=float),
+                                       np.ascontiguousarray(target_rows, dtype=np.int64),
                                        float(epsilon))
 
 

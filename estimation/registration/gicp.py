@@ -493,6 +493,7 @@ class Registration:
         self._block: float | None = None
         self._boundary_radius: float | None = None
         self._source_block: float | None = None
+        self._source_radius_value: float | None = None
         self._cache: NeighbourCache | None = None
         self._surface_radius: float | str | None = "unset"
         self._pitch: float | str | None = "unset"
@@ -666,8 +667,8 @@ class Registration:
                 or d_max > self.config.max_correspondence_distance * (1 + 1e-9)):
             return corr
         src, tgt = self.matched_points(corr)
-        tangential = tangential_squares(T, src, tgt, self.target_cov[corr.target_idx],
-                                        self.config.epsilon)
+        tangential = tangential_squares(T, src, tgt, _rows_of(self.target_cov, corr.target_idx),
+                                        corr.target_idx, self.config.epsilon)
         # exp(-(t / tau)^4 / 2): 0.61 at tau, 0.08 at 1.5 tau; smooth, so the pair set does
         # not flicker at a hard threshold (3 cm noise: 3/30 runs never converged with a hard
         # gate at 0.4, 0/30 with this one). On a random sampling a pair over the surface keeps
@@ -1000,6 +1001,8 @@ class Registration:
         if self._surface_radius is not None:  # the local means come with the covariances
             rev._source_pos = self._target_stats.means(np.arange(len(self.target)))
         rev._sigma, rev._alpha, rev._block = self._sigma, self._alpha, self._block
+        # (the reverse's boundary_radius is this source's; overlap() has computed it already)
+        rev._boundary_radius = self._source_radius
         rev._tree = self.source_tree
         return rev
 
@@ -1011,8 +1014,7 @@ class Registration:
         has sampled too.
         """
         if self._source_block is None:
-            self._source_block = self.config.cluster_factor * self._median_radius(
-                self.source, self.source_tree)
+            self._source_block = self.config.cluster_factor * self._source_radius
         radius = max(block, self._source_block)
         src = self.source[:: max(1, len(self.source) // OVERLAP_SAMPLES)]
         tgt = self.target[:: max(1, len(self.target) // OVERLAP_SAMPLES)]
@@ -1175,6 +1177,13 @@ class Registration:
         if self._block is None:
             self._block = self.config.cluster_factor * self.boundary_radius
         return self._block
+
+    @property
+    def _source_radius(self) -> float:
+        """:meth:`_median_radius` of the source (the reverse direction's ``boundary_radius``)."""
+        if self._source_radius_value is None:
+            self._source_radius_value = self._median_radius(self.source, self.source_tree)
+        return self._source_radius_value
 
     def _median_radius(self, points: np.ndarray, tree: cKDTree) -> float:
         """Median distance to the k-th nearest neighbour over a sample of 500 ``points``."""
