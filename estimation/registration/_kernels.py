@@ -224,20 +224,44 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
 
 
 @numba.njit(cache=True)
-def gicp_normal_equations(T: np.ndarray, source: np.ndarray, target: np.ndarray,
-                          Ut: np.ndarray, w: np.ndarray):
+def gicp_mahalanobis(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                     target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray) -> np.ndarray:
+    """Return (M,) e of :func:`gicp_terms` (the same operations) of the pairs
+    (source[source_rows[m]], target[target_rows[m]])."""
+    n = source_rows.shape[0]
+    e = np.empty(n)
+    r = np.empty(3)
+    for m in range(n):
+        s, t = source_rows[m], target_rows[m]
+        x0, x1, x2 = source[s, 0], source[s, 1], source[s, 2]
+        for i in range(3):
+            r[i] = target[t, i] - (T[i, 0] * x0 + T[i, 1] * x1 + T[i, 2] * x2 + T[i, 3])
+        ee = 0.0
+        for i in range(3):
+            v = Ut[m, i, 0] * r[0] + Ut[m, i, 1] * r[1] + Ut[m, i, 2] * r[2]
+            ee += v * v
+        e[m] = ee
+    return e
+
+
+@numba.njit(cache=True)
+def gicp_normal_equations(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                          target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray,
+                          w: np.ndarray):
     """Return (H (6,6), g (6,)) = (sum_k w_k J_k^T J_k, sum_k w_k J_k^T U_k^T r_k) of
-    :func:`gicp_terms` (unscaled) without forming the (M, 3, 6) Jacobians."""
-    n = source.shape[0]
+    :func:`gicp_terms` (unscaled) of the pairs (source[source_rows[m]],
+    target[target_rows[m]]), without forming the (M, 3, 6) Jacobians."""
+    n = source_rows.shape[0]
     H = np.zeros((6, 6))
     g = np.zeros(6)
     UR = np.empty((3, 3))
     Jr = np.empty(6)
     for m in range(n):
-        x0, x1, x2 = source[m, 0], source[m, 1], source[m, 2]
-        r0 = target[m, 0] - (T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3])
-        r1 = target[m, 1] - (T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3])
-        r2 = target[m, 2] - (T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3])
+        s, t = source_rows[m], target_rows[m]
+        x0, x1, x2 = source[s, 0], source[s, 1], source[s, 2]
+        r0 = target[t, 0] - (T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3])
+        r1 = target[t, 1] - (T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3])
+        r2 = target[t, 2] - (T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3])
         wm = w[m]
         for i in range(3):
             v = Ut[m, i, 0] * r0 + Ut[m, i, 1] * r1 + Ut[m, i, 2] * r2
@@ -262,20 +286,21 @@ def gicp_normal_equations(T: np.ndarray, source: np.ndarray, target: np.ndarray,
 
 
 @numba.njit(cache=True)
-def tangential_squares(T: np.ndarray, source: np.ndarray, target: np.ndarray,
-                       cov_target: np.ndarray, target_rows: np.ndarray,
+def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                       target: np.ndarray, target_rows: np.ndarray, cov_target: np.ndarray,
                        epsilon: float) -> np.ndarray:
     """Return (M,) the squared component of ``r = T x_s - x_t`` in the target's tangent
-    plane: ``max(r.r - r^T (I - C) r / (1 - epsilon), 0)`` (``C = I - (1 - eps) n n^T``,
-    ``cov_target[target_rows[m]]``)."""
-    n = source.shape[0]
+    plane: ``max(r.r - r^T (I - C) r / (1 - epsilon), 0)`` (``C = I - (1 - eps) n n^T``),
+    of the pairs ``x_s = source[source_rows[m]]``, ``x_t, C`` at ``target_rows[m]``."""
+    n = source_rows.shape[0]
     out = np.empty(n)
     for m in range(n):
-        x0, x1, x2 = source[m, 0], source[m, 1], source[m, 2]
-        r0 = T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3] - target[m, 0]
-        r1 = T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3] - target[m, 1]
-        r2 = T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3] - target[m, 2]
-        C = cov_target[target_rows[m]]
+        s, t = source_rows[m], target_rows[m]
+        x0, x1, x2 = source[s, 0], source[s, 1], source[s, 2]
+        r0 = T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3] - target[t, 0]
+        r1 = T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3] - target[t, 1]
+        r2 = T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3] - target[t, 2]
+        C = cov_target[t]
         q0 = (1.0 - C[0, 0]) * r0 - C[0, 1] * r1 - C[0, 2] * r2
         q1 = -C[1, 0] * r0 + (1.0 - C[1, 1]) * r1 - C[1, 2] * r2
         q2 = -C[2, 0] * r0 - C[2, 1] * r1 + (1.0 - C[2, 2]) * r2

@@ -97,29 +97,41 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
     return GicpTerms(rw, J if jacobians else None, e)
 
 
-def tangential_squares(T: np.ndarray, source: np.ndarray, target: np.ndarray,
-                       cov_target: np.ndarray, target_rows: np.ndarray,
+def _rows(rows: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(rows, dtype=np.int64)
+
+
+def _f8(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=float)
+
+
+def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                       target: np.ndarray, target_rows: np.ndarray, cov_target: np.ndarray,
                        epsilon: float) -> np.ndarray:
     """Return (M,) the squared component of ``T x_s - x_t`` in the target's tangent plane,
-    for target covariances ``cov_target[target_rows] = I - (1 - epsilon) n n^T`` (one pass,
-    no (M, 3, 3) temporaries)."""
-    return _kernels.tangential_squares(np.ascontiguousarray(T, dtype=float),
-                                       np.ascontiguousarray(source, dtype=float),
-                                       np.ascontiguousarray(target, dtype=float),
-                                       np.ascontiguousarray(cov_target, dtype=float),
-                                       np.ascontiguousarray(target_rows, dtype=np.int64),
-                                       float(epsilon))
+    for the pairs ``(source[source_rows], target[target_rows])`` whose target covariances
+    ``cov_target[target_rows]`` are ``I - (1 - epsilon) n n^T`` (one pass, no gathered
+    copies or (M, 3, 3) temporaries)."""
+    return _kernels.tangential_squares(_f8(T), _f8(source), _rows(source_rows), _f8(target),
+                                       _rows(target_rows), _f8(cov_target), float(epsilon))
 
 
-def normal_equations(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
+def mahalanobis(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray) -> np.ndarray:
+    """Return :func:`gicp_terms`' ``mahalanobis`` of the pairs
+    ``(source[source_rows], target[target_rows])`` (the same numbers, no gathered copies)."""
+    return _kernels.gicp_mahalanobis(_f8(T), _f8(source), _rows(source_rows), _f8(target),
+                                     _rows(target_rows), _f8(Ut))
+
+
+def normal_equations(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                     target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray,
                      weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Return ``(sum_k w_k J_k^T J_k, sum_k w_k J_k^T r_k)`` (whitened, as :func:`gicp_terms`)
-    in one pass, without the (M, 3, 6) Jacobians."""
-    return _kernels.gicp_normal_equations(np.ascontiguousarray(T, dtype=float),
-                                          np.ascontiguousarray(source, dtype=float),
-                                          np.ascontiguousarray(target, dtype=float),
-                                          np.ascontiguousarray(Ut, dtype=float),
-                                          np.ascontiguousarray(weights, dtype=float))
+    of the pairs ``(source[source_rows], target[target_rows])`` in one pass, without the
+    (M, 3, 6) Jacobians."""
+    return _kernels.gicp_normal_equations(_f8(T), _f8(source), _rows(source_rows), _f8(target),
+                                          _rows(target_rows), _f8(Ut), _f8(weights))
 
 
 def gauss_newton_step(T: np.ndarray, H: np.ndarray, g: np.ndarray, key: int) -> np.ndarray:

@@ -40,6 +40,7 @@ from .factors import (
     cauchy_weight,
     gauss_newton_step,
     gicp_terms,
+    mahalanobis,
     normal_equations,
     robust_factors,
     solve_weighted,
@@ -592,6 +593,14 @@ class Registration:
         return (self._source_pos[corr.source_idx],
                 self._target_stats.means(corr.target_idx))
 
+    def _matched_arrays(self, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
+        """Return whole (source, target) position arrays whose rows ``corr.source_idx`` and
+        ``corr.target_idx`` are :meth:`matched_points` (for the kernels that read by row)."""
+        if self.surface_radius is None:
+            return self.source, self.target
+        _ = self.matched_points(corr)  # fills the source means and the target's rows
+        return self._source_pos, self._target_stats.mean_values
+
     @property
     def surface_radius(self) -> float | None:
         """The radius of the local surface positions in use (m), or None (the samples)."""
@@ -666,9 +675,10 @@ class Registration:
         if (gate is None or not len(corr) or self._lattice is not None
                 or d_max > self.config.max_correspondence_distance * (1 + 1e-9)):
             return corr
-        src, tgt = self.matched_points(corr)
-        tangential = tangential_squares(T, src, tgt, _rows_of(self.target_cov, corr.target_idx),
-                                        corr.target_idx, self.config.epsilon)
+        src, tgt = self._matched_arrays(corr)
+        tangential = tangential_squares(T, src, corr.source_idx, tgt, corr.target_idx,
+                                        _rows_of(self.target_cov, corr.target_idx),
+                                        self.config.epsilon)
         # exp(-(t / tau)^4 / 2): 0.61 at tau, 0.08 at 1.5 tau; smooth, so the pair set does
         # not flicker at a hard threshold (3 cm noise: 3/30 runs never converged with a hard
         # gate at 0.4, 0/30 with this one). On a random sampling a pair over the surface keeps
@@ -818,17 +828,20 @@ class Registration:
                 return self._failed(T, f"only {len(corr)} correspondences within "
                                        f"d_max={d:g} m (need {cfg.min_inliers})",
                                     start, iterations, cost_log)
-            src, tgt = self.matched_points(corr)
+            # (every point array with the rows of corr available: no gathered copies)
+            src_all, tgt_all = self._matched_arrays(corr)
             Ut = self._whitening(corr, T[:3, :3])
-            e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
+            e = mahalanobis(T, src_all, corr.source_idx, tgt_all, corr.target_idx, Ut)
             self._update_alpha(e)
             cost_log.append(self._cost(e, corr.weights))
             if cfg.factors == "batched" and cfg.optimizer == "gn" and cfg.inner_iterations == 1:
                 # one Gauss-Newton step of the batched factor, from its normal equations
                 # (GaussNewtonOptimizer would evaluate the factor three times)
-                H, g = normal_equations(T, src, tgt, Ut, self._weights(e, corr.weights))
+                H, g = normal_equations(T, src_all, corr.source_idx, tgt_all, corr.target_idx,
+                                        Ut, self._weights(e, corr.weights))
                 T_new = gauss_newton_step(T, H, g, key)
             else:
+                src, tgt = self.matched_points(corr)
                 if cfg.factors == "batched":
                     factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
                 else:  # GTSAM applies the Cauchy kernel itself, one factor per correspondence
