@@ -118,6 +118,45 @@ def neighbour_covariances(points: np.ndarray, idx: np.ndarray, epsilon: float) -
 
 
 @numba.njit(cache=True)
+def _whiten_into(out: np.ndarray, cov_target: np.ndarray, cov_source: np.ndarray,
+                 R: np.ndarray, C: np.ndarray, RS: np.ndarray) -> None:
+    """Write U^T of one pair into the (3, 3) ``out`` (see :func:`whitening`)."""
+    for i in range(3):
+        for j in range(3):
+            RS[i, j] = R[i, 0] * cov_source[0, j] + R[i, 1] * cov_source[1, j] \
+                + R[i, 2] * cov_source[2, j]
+    for i in range(3):
+        for j in range(3):
+            C[i, j] = cov_target[i, j] + RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] \
+                + RS[i, 2] * R[j, 2]
+    # symmetric 3x3 inverse by cofactors
+    a, b, c = C[0, 0], 0.5 * (C[0, 1] + C[1, 0]), 0.5 * (C[0, 2] + C[2, 0])
+    d, e, f = C[1, 1], 0.5 * (C[1, 2] + C[2, 1]), C[2, 2]
+    A00 = d * f - e * e
+    A01 = c * e - b * f
+    A02 = b * e - c * d
+    det = a * A00 + b * A01 + c * A02
+    A11 = a * f - c * c
+    A12 = b * c - a * e
+    A22 = a * d - b * b
+    i00, i01, i02 = A00 / det, A01 / det, A02 / det
+    i11, i12, i22 = A11 / det, A12 / det, A22 / det
+    # Cholesky L of the information matrix; U^T = L^T
+    l00 = np.sqrt(i00)
+    l10 = i01 / l00
+    l20 = i02 / l00
+    l11 = np.sqrt(i11 - l10 * l10)
+    l21 = (i12 - l20 * l10) / l11
+    l22 = np.sqrt(i22 - l20 * l20 - l21 * l21)
+    out[0, 0] = l00
+    out[0, 1] = l10
+    out[0, 2] = l20
+    out[1, 1] = l11
+    out[1, 2] = l21
+    out[2, 2] = l22
+
+
+@numba.njit(cache=True)
 def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Return (M, 3, 3) U^T with U U^T = (Sigma_t + R Sigma_s R^T)^-1 (U lower Cholesky)."""
     n = cov_target.shape[0]
@@ -125,39 +164,21 @@ def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> 
     C = np.empty((3, 3))
     RS = np.empty((3, 3))
     for m in range(n):
-        for i in range(3):
-            for j in range(3):
-                RS[i, j] = R[i, 0] * cov_source[m, 0, j] + R[i, 1] * cov_source[m, 1, j] \
-                    + R[i, 2] * cov_source[m, 2, j]
-        for i in range(3):
-            for j in range(3):
-                C[i, j] = cov_target[m, i, j] + RS[i, 0] * R[j, 0] + RS[i, 1] * R[j, 1] \
-                    + RS[i, 2] * R[j, 2]
-        # symmetric 3x3 inverse by cofactors
-        a, b, c = C[0, 0], 0.5 * (C[0, 1] + C[1, 0]), 0.5 * (C[0, 2] + C[2, 0])
-        d, e, f = C[1, 1], 0.5 * (C[1, 2] + C[2, 1]), C[2, 2]
-        A00 = d * f - e * e
-        A01 = c * e - b * f
-        A02 = b * e - c * d
-        det = a * A00 + b * A01 + c * A02
-        A11 = a * f - c * c
-        A12 = b * c - a * e
-        A22 = a * d - b * b
-        i00, i01, i02 = A00 / det, A01 / det, A02 / det
-        i11, i12, i22 = A11 / det, A12 / det, A22 / det
-        # Cholesky L of the information matrix; U^T = L^T
-        l00 = np.sqrt(i00)
-        l10 = i01 / l00
-        l20 = i02 / l00
-        l11 = np.sqrt(i11 - l10 * l10)
-        l21 = (i12 - l20 * l10) / l11
-        l22 = np.sqrt(i22 - l20 * l20 - l21 * l21)
-        out[m, 0, 0] = l00
-        out[m, 0, 1] = l10
-        out[m, 0, 2] = l20
-        out[m, 1, 1] = l11
-        out[m, 1, 2] = l21
-        out[m, 2, 2] = l22
+        _whiten_into(out[m], cov_target[m], cov_source[m], R, C, RS)
+    return out
+
+
+@numba.njit(cache=True)
+def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: np.ndarray,
+                   source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """:func:`whitening` of the pairs (cov_target[target_rows[m]], cov_source[source_rows[m]])
+    without gathering them first."""
+    n = target_rows.shape[0]
+    out = np.zeros((n, 3, 3))
+    C = np.empty((3, 3))
+    RS = np.empty((3, 3))
+    for m in range(n):
+        _whiten_into(out[m], cov_target[target_rows[m]], cov_source[source_rows[m]], R, C, RS)
     return out
 
 
@@ -200,6 +221,92 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
                 J[m, i, 4] = -s * UR[i, 1]
                 J[m, i, 5] = -s * UR[i, 2]
     return rw, J, e
+
+
+@numba.njit(cache=True)
+def gicp_mahalanobis(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                     target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray) -> np.ndarray:
+    """Return (M,) e of :func:`gicp_terms` (the same operations) of the pairs
+    (source[source_rows[m]], target[target_rows[m]])."""
+    n = source_rows.shape[0]
+    e = np.empty(n)
+    r = np.empty(3)
+    for m in range(n):
+        s, t = source_rows[m], target_rows[m]
+        x0, x1, x2 = source[s, 0], source[s, 1], source[s, 2]
+        for i in range(3):
+            r[i] = target[t, i] - (T[i, 0] * x0 + T[i, 1] * x1 + T[i, 2] * x2 + T[i, 3])
+        ee = 0.0
+        for i in range(3):
+            v = Ut[m, i, 0] * r[0] + Ut[m, i, 1] * r[1] + Ut[m, i, 2] * r[2]
+            ee += v * v
+        e[m] = ee
+    return e
+
+
+@numba.njit(cache=True)
+def gicp_normal_equations(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                          target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray,
+                          w: np.ndarray):
+    """Return (H (6,6), g (6,)) = (sum_k w_k J_k^T J_k, sum_k w_k J_k^T U_k^T r_k) of
+    :func:`gicp_terms` (unscaled) of the pairs (source[source_rows[m]],
+    target[target_rows[m]]), without forming the (M, 3, 6) Jacobians."""
+    n = source_rows.shape[0]
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    UR = np.empty((3, 3))
+    Jr = np.empty(6)
+    for m in range(n):
+        s, t = source_rows[m], target_rows[m]
+        x0, x1, x2 = source[s, 0], source[s, 1], source[s, 2]
+        r0 = target[t, 0] - (T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3])
+        r1 = target[t, 1] - (T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3])
+        r2 = target[t, 2] - (T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3])
+        wm = w[m]
+        for i in range(3):
+            v = Ut[m, i, 0] * r0 + Ut[m, i, 1] * r1 + Ut[m, i, 2] * r2
+            for j in range(3):
+                UR[i, j] = Ut[m, i, 0] * T[0, j] + Ut[m, i, 1] * T[1, j] \
+                    + Ut[m, i, 2] * T[2, j]
+            Jr[0] = UR[i, 1] * x2 - UR[i, 2] * x1
+            Jr[1] = UR[i, 2] * x0 - UR[i, 0] * x2
+            Jr[2] = UR[i, 0] * x1 - UR[i, 1] * x0
+            Jr[3] = -UR[i, 0]
+            Jr[4] = -UR[i, 1]
+            Jr[5] = -UR[i, 2]
+            for a in range(6):
+                wa = wm * Jr[a]
+                g[a] += wa * v
+                for b in range(a, 6):
+                    H[a, b] += wa * Jr[b]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g
+
+
+@numba.njit(cache=True)
+def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                       target: np.ndarray, target_rows: np.ndarray, cov_target: np.ndarray,
+                       epsilon: float) -> np.ndarray:
+    """Return (M,) the squared component of ``r = T x_s - x_t`` in the target's tangent
+    plane: ``max(r.r - r^T (I - C) r / (1 - epsilon), 0)`` (``C = I - (1 - eps) n n^T``),
+    of the pairs ``x_s = source[source_rows[m]]``, ``x_t, C`` at ``target_rows[m]``."""
+    n = source_rows.shape[0]
+    out = np.empty(n)
+    for m in range(n):
+        s, t = source_rows[m], target_rows[m]
+        x0, x1, x2 = source[s, 0], source[s, 1], source[s, 2]
+        r0 = T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3] - target[t, 0]
+        r1 = T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3] - target[t, 1]
+        r2 = T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3] - target[t, 2]
+        C = cov_target[t]
+        q0 = (1.0 - C[0, 0]) * r0 - C[0, 1] * r1 - C[0, 2] * r2
+        q1 = -C[1, 0] * r0 + (1.0 - C[1, 1]) * r1 - C[1, 2] * r2
+        q2 = -C[2, 0] * r0 - C[2, 1] * r1 + (1.0 - C[2, 2]) * r2
+        normal = (r0 * q0 + r1 * q1 + r2 * q2) / (1.0 - epsilon)
+        out[m] = max(r0 * r0 + r1 * r1 + r2 * r2 - normal, 0.0)
+    return out
 
 
 @numba.njit(cache=True)

@@ -94,6 +94,7 @@ class LazyCovariances:
         self.values = np.empty((len(points), 3, 3))
         self.mean_values = None if radius is None else np.empty((len(points), 3))
         self.done = np.zeros(len(points), bool)
+        self._rank: np.ndarray | None = None
         # a symmetric registration's two directions fill the same rows from two threads
         self._lock = threading.Lock()
 
@@ -104,6 +105,11 @@ class LazyCovariances:
             missing = idx[~self.done[idx]]
             if len(missing):
                 rows = np.unique(missing)
+                if len(rows) > 64:
+                    # in the KD-tree's leaf order: neighbouring queries walk the same nodes
+                    # (a tenth faster than the cloud's own order, e.g. a voxel filter's hash
+                    # order); each row's neighbours do not depend on the order
+                    rows = rows[np.argsort(self._leaf_rank[rows])]
                 covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree,
                                              rows, self.radius, self.min_points)
                 self.values[rows] = covs
@@ -111,9 +117,23 @@ class LazyCovariances:
                     self.mean_values[rows] = means
                 self.done[rows] = True
 
+    @property
+    def _leaf_rank(self) -> np.ndarray:
+        """Each point's position in the KD-tree's leaf order (a spatially coherent order)."""
+        if self._rank is None:
+            rank = np.empty(len(self.points), np.int64)
+            rank[self.tree.indices] = np.arange(len(self.points))
+            self._rank = rank
+        return self._rank
+
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
         self._fill(idx)
         return self.values[idx]
+
+    def filled(self, idx: np.ndarray) -> np.ndarray:
+        """Return the whole (N, 3, 3) array with (at least) the rows ``idx`` computed."""
+        self._fill(idx)
+        return self.values
 
     def means(self, idx: np.ndarray) -> np.ndarray:
         """Return the local means of rows ``idx`` (requires ``radius``)."""

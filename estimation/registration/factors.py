@@ -69,6 +69,17 @@ def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> 
                               np.ascontiguousarray(R, dtype=float))
 
 
+def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: np.ndarray,
+                   source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """:func:`whitening` of ``cov_target[target_rows]`` and ``cov_source[source_rows]``,
+    without gathering the (M, 3, 3) stacks first (the same numbers)."""
+    return _kernels.whitening_rows(np.ascontiguousarray(cov_target, dtype=float),
+                                   np.ascontiguousarray(target_rows, dtype=np.int64),
+                                   np.ascontiguousarray(cov_source, dtype=float),
+                                   np.ascontiguousarray(source_rows, dtype=np.int64),
+                                   np.ascontiguousarray(R, dtype=float))
+
+
 def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
                jacobians: bool = True, sqrt_weights: np.ndarray | None = None) -> GicpTerms:
     """Return whitened residuals (and Jacobians) of eq. (3) at the 4x4 ``T``.
@@ -84,6 +95,59 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
                                    np.ascontiguousarray(target, dtype=float),
                                    np.ascontiguousarray(Ut, dtype=float), sw, bool(jacobians))
     return GicpTerms(rw, J if jacobians else None, e)
+
+
+def _rows(rows: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(rows, dtype=np.int64)
+
+
+def _f8(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=float)
+
+
+def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                       target: np.ndarray, target_rows: np.ndarray, cov_target: np.ndarray,
+                       epsilon: float) -> np.ndarray:
+    """Return (M,) the squared component of ``T x_s - x_t`` in the target's tangent plane,
+    for the pairs ``(source[source_rows], target[target_rows])`` whose target covariances
+    ``cov_target[target_rows]`` are ``I - (1 - epsilon) n n^T`` (one pass, no gathered
+    copies or (M, 3, 3) temporaries)."""
+    return _kernels.tangential_squares(_f8(T), _f8(source), _rows(source_rows), _f8(target),
+                                       _rows(target_rows), _f8(cov_target), float(epsilon))
+
+
+def mahalanobis(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray) -> np.ndarray:
+    """Return :func:`gicp_terms`' ``mahalanobis`` of the pairs
+    ``(source[source_rows], target[target_rows])`` (the same numbers, no gathered copies)."""
+    return _kernels.gicp_mahalanobis(_f8(T), _f8(source), _rows(source_rows), _f8(target),
+                                     _rows(target_rows), _f8(Ut))
+
+
+def normal_equations(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
+                     target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray,
+                     weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Return ``(sum_k w_k J_k^T J_k, sum_k w_k J_k^T r_k)`` (whitened, as :func:`gicp_terms`)
+    of the pairs ``(source[source_rows], target[target_rows])`` in one pass, without the
+    (M, 3, 6) Jacobians."""
+    return _kernels.gicp_normal_equations(_f8(T), _f8(source), _rows(source_rows), _f8(target),
+                                          _rows(target_rows), _f8(Ut), _f8(weights))
+
+
+def gauss_newton_step(T: np.ndarray, H: np.ndarray, g: np.ndarray, key: int) -> np.ndarray:
+    """Return the 4x4 pose after one Gauss-Newton step of the weighted least-squares problem
+    with information ``H`` and gradient ``g = sum w J^T r`` (:func:`normal_equations`), solved
+    by GTSAM: a :class:`gtsam.HessianFactor` eliminated by ``GaussianFactorGraph.optimize``
+    and retracted by ``Values.retract``, as ``GaussNewtonOptimizer`` does with the batched
+    factor's linearisation (its Cholesky elimination forms the same ``J^T J``; the optimiser
+    also evaluates the cost twice more, which one step does not use).
+    """
+    graph = gtsam.GaussianFactorGraph()
+    # the linearised factor is ||J dx + r||^2: G = J^T J, the linear term J^T (-r)
+    graph.add(gtsam.HessianFactor(key, H, -g, 0.0))
+    values = gtsam.Values()
+    values.insert(key, gtsam.Pose3(T))
+    return values.retract(graph.optimize()).atPose3(key).matrix()
 
 
 class BatchedGicpFactor:

@@ -38,10 +38,14 @@ from .factors import (
     BatchedGicpFactor,
     cauchy_loss,
     cauchy_weight,
+    gauss_newton_step,
     gicp_terms,
+    mahalanobis,
+    normal_equations,
     robust_factors,
     solve_weighted,
-    whitening,
+    tangential_squares,
+    whitening_rows,
 )
 
 # Cauchy tuning constant for 95 % asymptotic efficiency at Gaussian residuals (Holland and
@@ -432,6 +436,11 @@ def _as_transform(T: np.ndarray | gtsam.Pose3 | None) -> np.ndarray:
     return gtsam.Pose3(T).matrix()  # re-orthonormalises the rotation
 
 
+def _rows_of(cov: np.ndarray | LazyCovariances, rows: np.ndarray) -> np.ndarray:
+    """The full (N, 3, 3) covariance array with ``rows`` available (computed if lazy)."""
+    return cov.filled(rows) if isinstance(cov, LazyCovariances) else cov
+
+
 _REVERSE_EXECUTOR = None
 
 
@@ -485,6 +494,7 @@ class Registration:
         self._block: float | None = None
         self._boundary_radius: float | None = None
         self._source_block: float | None = None
+        self._source_radius_value: float | None = None
         self._cache: NeighbourCache | None = None
         self._surface_radius: float | str | None = "unset"
         self._pitch: float | str | None = "unset"
@@ -583,6 +593,14 @@ class Registration:
         return (self._source_pos[corr.source_idx],
                 self._target_stats.means(corr.target_idx))
 
+    def _matched_arrays(self, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
+        """Return whole (source, target) position arrays whose rows ``corr.source_idx`` and
+        ``corr.target_idx`` are :meth:`matched_points` (for the kernels that read by row)."""
+        if self.surface_radius is None:
+            return self.source, self.target
+        _ = self.matched_points(corr)  # fills the source means and the target's rows
+        return self._source_pos, self._target_stats.mean_values
+
     @property
     def surface_radius(self) -> float | None:
         """The radius of the local surface positions in use (m), or None (the samples)."""
@@ -636,6 +654,12 @@ class Registration:
         return self._gated(T, d_max, nearest_correspondences(moved, self.target_tree, d_max,
                                                              cache))
 
+    def _whitening(self, corr: Correspondences, R: np.ndarray) -> np.ndarray:
+        """Return the (M, 3, 3) whitening of ``corr`` at rotation ``R`` (:func:`whitening`),
+        read from the covariance arrays by row (no gathered copies)."""
+        return whitening_rows(_rows_of(self.target_cov, corr.target_idx), corr.target_idx,
+                              _rows_of(self.source_cov, corr.source_idx), corr.source_idx, R)
+
     def _gated(self, T: np.ndarray, d_max: float, corr: Correspondences) -> Correspondences:
         """Return ``corr`` with the pairs beyond the target's surface down-weighted or dropped
         (``boundary_gate``).
@@ -651,12 +675,10 @@ class Registration:
         if (gate is None or not len(corr) or self._lattice is not None
                 or d_max > self.config.max_correspondence_distance * (1 + 1e-9)):
             return corr
-        src, tgt = self.matched_points(corr)
-        r = transform_points(T, src) - tgt
-        eps = self.config.epsilon
-        normal = np.einsum("ni,nij,nj->n", r, np.eye(3) - self.target_cov[corr.target_idx],
-                           r) / (1.0 - eps)
-        tangential = np.maximum(np.einsum("ni,ni->n", r, r) - normal, 0.0)
+        src, tgt = self._matched_arrays(corr)
+        tangential = tangential_squares(T, src, corr.source_idx, tgt, corr.target_idx,
+                                        _rows_of(self.target_cov, corr.target_idx),
+                                        self.config.epsilon)
         # exp(-(t / tau)^4 / 2): 0.61 at tau, 0.08 at 1.5 tau; smooth, so the pair set does
         # not flicker at a hard threshold (3 cm noise: 3/30 runs never converged with a hard
         # gate at 0.4, 0/30 with this one). On a random sampling a pair over the surface keeps
@@ -806,18 +828,26 @@ class Registration:
                 return self._failed(T, f"only {len(corr)} correspondences within "
                                        f"d_max={d:g} m (need {cfg.min_inliers})",
                                     start, iterations, cost_log)
-            src, tgt = self.matched_points(corr)
-            Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
-                           T[:3, :3])
-            e = gicp_terms(T, src, tgt, Ut, jacobians=False).mahalanobis
+            # (every point array with the rows of corr available: no gathered copies)
+            src_all, tgt_all = self._matched_arrays(corr)
+            Ut = self._whitening(corr, T[:3, :3])
+            e = mahalanobis(T, src_all, corr.source_idx, tgt_all, corr.target_idx, Ut)
             self._update_alpha(e)
             cost_log.append(self._cost(e, corr.weights))
-            if cfg.factors == "batched":
-                factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
-            else:  # GTSAM applies the Cauchy kernel itself, one factor per correspondence
-                factor = robust_factors(key, src, tgt, Ut, corr.weights, self._alpha,
-                                        cfg.semantic_weight if self.semantic else "outside")
-            T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations, key)
+            if cfg.factors == "batched" and cfg.optimizer == "gn" and cfg.inner_iterations == 1:
+                # one Gauss-Newton step of the batched factor, from its normal equations
+                # (GaussNewtonOptimizer would evaluate the factor three times)
+                H, g = normal_equations(T, src_all, corr.source_idx, tgt_all, corr.target_idx,
+                                        Ut, self._weights(e, corr.weights))
+                T_new = gauss_newton_step(T, H, g, key)
+            else:
+                src, tgt = self.matched_points(corr)
+                if cfg.factors == "batched":
+                    factor = BatchedGicpFactor(key, src, tgt, Ut, self._weights(e, corr.weights))
+                else:  # GTSAM applies the Cauchy kernel itself, one factor per correspondence
+                    factor = robust_factors(key, src, tgt, Ut, corr.weights, self._alpha,
+                                            cfg.semantic_weight if self.semantic else "outside")
+                T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations, key)
             step = np.linalg.norm(gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new))))
             # nearest-neighbour sets can alternate forever between two poses
             two_cycle = T_prev is not None and np.linalg.norm(gtsam.Pose3.Logmap(
@@ -849,8 +879,7 @@ class Registration:
         if len(corr) < self.config.min_inliers:
             return None
         src, tgt = self.matched_points(corr)
-        Ut = whitening(self.target_cov[corr.target_idx], self.source_cov[corr.source_idx],
-                       T[:3, :3])
+        Ut = self._whitening(corr, T[:3, :3])
         terms = gicp_terms(T, src, tgt, Ut)
         w = self._weights(terms.mahalanobis, corr.weights)
         Jflat = (terms.jacobians * np.sqrt(w)[:, None, None]).reshape(-1, 6)
@@ -970,10 +999,11 @@ class Registration:
         source), the lattice decision, the kernel's alpha and Semantic-ICP's residual sigma.
         """
         # (every pose the reverse visits is within a few standard deviations of the first:
-        # two cached candidates keep its neighbour search exact, and cost half the query)
+        # four cached candidates keep its neighbour search exact at a cheaper query than
+        # eight; with two, KITTI's six re-matched poses re-queried 1.2k-3.9k of 10.6k rows each)
         cfg = replace(self.config, initial_correspondence_distance=None, symmetric=False,
                       cauchy_scale="fixed", cauchy_alpha=self._alpha,
-                      cached_neighbours=min(self.config.cached_neighbours, 2))
+                      cached_neighbours=min(self.config.cached_neighbours, 4))
         # (the target's covariances stay lazy: the reverse matches mostly the same rows)
         rev = Registration(self.target, self.source, cfg,
                            self.target_probs if self.semantic else None,
@@ -984,6 +1014,8 @@ class Registration:
         if self._surface_radius is not None:  # the local means come with the covariances
             rev._source_pos = self._target_stats.means(np.arange(len(self.target)))
         rev._sigma, rev._alpha, rev._block = self._sigma, self._alpha, self._block
+        # (the reverse's boundary_radius is this source's; overlap() has computed it already)
+        rev._boundary_radius = self._source_radius
         rev._tree = self.source_tree
         return rev
 
@@ -995,8 +1027,7 @@ class Registration:
         has sampled too.
         """
         if self._source_block is None:
-            self._source_block = self.config.cluster_factor * self._median_radius(
-                self.source, self.source_tree)
+            self._source_block = self.config.cluster_factor * self._source_radius
         radius = max(block, self._source_block)
         src = self.source[:: max(1, len(self.source) // OVERLAP_SAMPLES)]
         tgt = self.target[:: max(1, len(self.target) // OVERLAP_SAMPLES)]
@@ -1118,8 +1149,7 @@ class Registration:
                 self._sigma = sigma
                 return A
             src, tgt = self.matched_points(corr)
-            Ut = whitening(self.target_cov[corr.target_idx],
-                           self.source_cov[corr.source_idx], T_i[:3, :3])
+            Ut = self._whitening(corr, T_i[:3, :3])
             terms = gicp_terms(T_i, src, tgt, Ut)
             w = self._weights(terms.mahalanobis, corr.weights)
             # sum_k w_k J_k^T r_k as one matrix-vector product
@@ -1160,6 +1190,13 @@ class Registration:
         if self._block is None:
             self._block = self.config.cluster_factor * self.boundary_radius
         return self._block
+
+    @property
+    def _source_radius(self) -> float:
+        """:meth:`_median_radius` of the source (the reverse direction's ``boundary_radius``)."""
+        if self._source_radius_value is None:
+            self._source_radius_value = self._median_radius(self.source, self.source_tree)
+        return self._source_radius_value
 
     def _median_radius(self, points: np.ndarray, tree: cKDTree) -> float:
         """Median distance to the k-th nearest neighbour over a sample of 500 ``points``."""
