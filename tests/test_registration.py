@@ -21,7 +21,13 @@ from estimation.registration import (
     semantic_icp,
     whitening,
 )
-from estimation.registration.factors import cauchy_loss, cauchy_weight, solve_weighted
+from estimation.registration.factors import (
+    cauchy_loss,
+    cauchy_weight,
+    gauss_newton_step,
+    normal_equations,
+    solve_weighted,
+)
 
 
 def corner_scene(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -253,6 +259,41 @@ def test_batched_factor_linearises_to_stacked_terms(rng):
     before = factor.factor.error(values)
     values.update(factor.key, gtsam.Pose3(solve_weighted(start, factor, "gn", 1)))
     assert factor.factor.error(values) < before
+
+
+def test_one_step_from_the_normal_equations_is_gtsams_gauss_newton_step(rng):
+    # the registration's inner step (fused normal equations solved by GTSAM) against
+    # GaussNewtonOptimizer on the batched factor, and the stacked Jacobians' J^T W J, J^T W r
+    source, _, target, _, T_gt = make_pair(4, 400)
+    reg = Registration(source, target, RegistrationConfig())
+    corr = reg.correspondences(T_gt, 0.3)
+    start = T_gt @ random_pose(rng, 0.01, 0.02)
+    Ut = whitening(reg.target_cov[corr.target_idx], reg.source_cov[corr.source_idx],
+                   start[:3, :3])
+    weights = rng.uniform(0.2, 1.0, len(corr))
+    H, g = normal_equations(start, source, corr.source_idx, target, corr.target_idx, Ut,
+                            weights)
+    terms = gicp_terms(start, source[corr.source_idx], target[corr.target_idx], Ut)
+    np.testing.assert_allclose(H, np.einsum("m,mji,mjk->ik", weights, terms.jacobians,
+                                            terms.jacobians), rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(g, np.einsum("m,mji,mj->i", weights, terms.jacobians,
+                                            terms.residuals), rtol=1e-10, atol=1e-12)
+    key = gtsam.symbol("t", 0)
+    factor = BatchedGicpFactor(key, source[corr.source_idx], target[corr.target_idx], Ut,
+                               weights)
+    np.testing.assert_allclose(gauss_newton_step(start, H, g, key),
+                               solve_weighted(start, factor, "gn", 1), atol=1e-12)
+
+
+def test_a_step_in_degenerate_geometry_leaves_the_free_direction_alone():
+    # collinear pairs: rotation about the line is free; GTSAM finds the system indeterminate,
+    # the damped step must not move along it (and must not raise)
+    H = np.diag([0.0, 4.0, 4.0, 1.0, 1.0, 1.0])
+    g = np.array([0.0, 0.4, -0.2, 0.1, 0.3, -0.1])
+    T = gauss_newton_step(np.eye(4), H, g, gtsam.symbol("t", 0))
+    xi = gtsam.Pose3.Logmap(gtsam.Pose3(T))
+    assert abs(xi[0]) < 1e-12
+    np.testing.assert_allclose(xi[1:], -g[1:] / np.diag(H)[1:], rtol=1e-5)  # -H^-1 g
 
 
 # -- recovery ---------------------------------------------------------------------------------

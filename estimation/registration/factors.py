@@ -134,6 +134,11 @@ def normal_equations(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
                                           _rows(target_rows), _f8(Ut), _f8(weights))
 
 
+# relative damping of a step whose system GTSAM finds indeterminate (gauss_newton_step): GTSAM's
+# Cholesky gives up on pivots below about 1e-9 of the largest, so the damping must clear that
+DEGENERATE_DAMPING = 1e-6
+
+
 def gauss_newton_step(T: np.ndarray, H: np.ndarray, g: np.ndarray, key: int) -> np.ndarray:
     """Return the 4x4 pose after one Gauss-Newton step of the weighted least-squares problem
     with information ``H`` and gradient ``g = sum w J^T r`` (:func:`normal_equations`), solved
@@ -142,12 +147,25 @@ def gauss_newton_step(T: np.ndarray, H: np.ndarray, g: np.ndarray, key: int) -> 
     factor's linearisation (its Cholesky elimination forms the same ``J^T J``; the optimiser
     also evaluates the cost twice more, which one step does not use).
     """
+    values = gtsam.Values()
+    values.insert(key, gtsam.Pose3(T))
+    try:
+        return values.retract(_hessian_graph(key, H, g).optimize()).atPose3(key).matrix()
+    except RuntimeError:
+        # GTSAM's IndeterminateLinearSystemException: a direction the pairs do not constrain
+        # (degenerate geometry, e.g. collinear clouds). Damped as Levenberg-Marquardt does,
+        # the step leaves that direction alone; the covariance's degeneracy test then reports
+        # it (converged=False).
+        damping = DEGENERATE_DAMPING * max(float(np.trace(H)) / 6.0, 1e-300)
+        return values.retract(_hessian_graph(key, H + damping * np.eye(6), g).optimize()
+                              ).atPose3(key).matrix()
+
+
+def _hessian_graph(key: int, H: np.ndarray, g: np.ndarray) -> gtsam.GaussianFactorGraph:
     graph = gtsam.GaussianFactorGraph()
     # the linearised factor is ||J dx + r||^2: G = J^T J, the linear term J^T (-r)
     graph.add(gtsam.HessianFactor(key, H, -g, 0.0))
-    values = gtsam.Values()
-    values.insert(key, gtsam.Pose3(T))
-    return values.retract(graph.optimize()).atPose3(key).matrix()
+    return graph
 
 
 class BatchedGicpFactor:
