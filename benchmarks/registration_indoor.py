@@ -35,12 +35,14 @@ Protocol as benchmarks/registration.py: the same clouds, initial guess (small: 0
 wide: 1.0 m / 40 deg about the source centroid) and two-stage schedule (d0 0.5 / 1.0 m, then
 0.2 m) for every method. Methods: "gicp-se3" and "semantic-icp" (ours, default
 RegistrationConfig but for the schedule), "gicp-se3-nogate" (ours with ``boundary_gate=None``,
-the estimator before the boundary gate), "open3d-gicp" (CauchyLoss(1.0), the reference of the
-ratios). Semantic-ICP uses one-hot labels (the wrong ones too). NEES = e^T P^-1 e of the final
-error against the reported covariance; every trial is an independent source (another half,
-subsample, noise, labels, ground truth), the map is the same: the mean NEES is compared with
-the chi-square bounds of a mean of N (6 dof). Times per registration include the per-point
-covariances of every method; "paired" = median of the per-trial ratios to Open3D.
+the estimator before the boundary gate), "gicp-se3-nearest" (ours with ``voxel_matching=None``:
+the nearest centroid throughout, the estimator before same-voxel matching), "open3d-gicp"
+(CauchyLoss(1.0), the reference of the ratios). Semantic-ICP uses one-hot labels (the wrong
+ones too). NEES = e^T P^-1 e of the final error against the reported covariance; every trial is
+an independent source (another half, subsample, noise, labels, ground truth), the map is the
+same: the mean NEES is compared with the chi-square bounds of a mean of N (6 dof). Times per
+registration include the per-point covariances of every method; "paired" = median of the per-
+trial ratios to Open3D.
 
 Diagnosis of the covariance gap (``--phase-covariance K``, GICP-SE(3) on centroid maps, half
 setting): the map's representation error is where the voxel grid cuts the room's surfaces.
@@ -87,7 +89,7 @@ ROOMS = {"tum": ("tum_fr1_rpy", (517.3, 516.5, 318.6, 255.3),
          "icl": ("icl_of_kt0", (481.2, 480.0, 319.5, 239.5), None)}
 N_CLASSES = 4
 PITCH = 0.03
-METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "open3d-gicp")
+METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "open3d-gicp")
 PART_OVERLAP = 1.0  # m: width of the slab two parts share (setting "part")
 
 
@@ -226,7 +228,8 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
                 T, seconds = run_open3d(source, target, init, (d0, D_FINAL))
                 result = None
             else:
-                options = {"boundary_gate": None} if method == "gicp-se3-nogate" else {}
+                options = {"gicp-se3-nogate": {"boundary_gate": None},
+                           "gicp-se3-nearest": {"voxel_matching": None}}.get(method, {})
                 result, seconds = register_ours(source, target, init, (d0, D_FINAL),
                                                 semantic=method == "semantic-icp", **options)
                 T = result.T

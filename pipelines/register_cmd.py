@@ -6,6 +6,7 @@ Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs
 (T_target_source, 4x4), covariance (6x6, [rotation, translation]), converged, reason,
 iterations, inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
 model-error share, correlation ratio, re-association gain, symmetric, direction gap, overlap,
+voxel pitch of same-voxel matching,
 covariance_trusted) and, with --gt, d_se3 (eq. (9)),
 t_err_m, r_err_rad and nees.
 
@@ -153,6 +154,7 @@ def _register(args, source, target, flip=None) -> dict:
                               else float(diagnostic.direction_gap)),
             "overlap": (None if np.isnan(diagnostic.overlap[0])
                         else [float(v) for v in diagnostic.overlap]),
+            "voxel_pitch_m": getattr(diagnostic, "voxel_pitch", None),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:

@@ -79,20 +79,23 @@ def test_the_covariance_is_flagged_untrusted_where_the_source_lies_inside_the_ma
 
 
 @pytest.mark.slow
-def test_the_rematched_bread_is_the_estimators_response_on_the_room(room, forward):
+def test_the_rematched_bread_is_the_estimators_response_on_the_room(room):
     # The estimate is the root of the score sum F with the correspondences re-matched at the
     # pose itself: from the truth, a Newton step with the re-matched bread D predicts where
     # the estimator ends (measured: mean Mahalanobis miss 0.5 against the error's 7.5; 1.4
     # with the fixed-association Hessian A). So the covariance's gap on this room is in the
     # meat (the score sum's spread), not in the bread.
+    # (the nearest-centroid estimator: same-voxel matching, on by default on this map, is
+    # much less driven by re-matching, so its bread is close to A)
     points, labels, target = room
+    nearest = trials(room, 6, voxel_matching=None)
     miss_d, miss_a, size = [], [], []
     for seed in range(6):
         rng = np.random.default_rng(seed)
         source, T_gt = half_room_source(points, labels, rng)
-        result, err = forward[seed]
+        result, err = nearest[seed]
         reg = Registration(source.points, target.points, RegistrationConfig(
-            max_correspondence_distance=D_FINAL, symmetric=False))
+            max_correspondence_distance=D_FINAL, symmetric=False, voxel_matching=None))
         reg.run(T_gt)  # (the kernel's scale at the truth)
         sol = reg.solution_terms(T_gt, D_FINAL)
         summed = gicp.cluster_sums(sol.tgt, sol.scores, reg.cluster_size(T_gt, sol.corr))

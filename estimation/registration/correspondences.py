@@ -5,8 +5,10 @@ small dataclasses; KD-trees are :class:`scipy.spatial.cKDTree`.
 """
 from __future__ import annotations
 
+import hashlib
 import threading
-from dataclasses import dataclass
+from collections import OrderedDict
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -196,6 +198,161 @@ def lattice_pitch(points: np.ndarray, tree: cKDTree | None = None, sample: int =
         off = np.abs((phase - ref + 0.5) % 1.0 - 0.5)
         best = max(best, float(np.mean(np.all(off < tol, axis=1))))
     return pitch if best >= share else None
+
+
+# Voxel-centroid maps (voxel_grid): the grid is accepted when the mean over the axes of the
+# resultant length of exp(2 pi i x / pitch) reaches GRID_MIN_RESULTANT on each axis (measured:
+# 0.17-0.31 at the true pitch on real rooms' 2.5-5 cm maps, ours and Open3D's
+# voxel_down_sample; none of the raw or noisy clouds passed); at most GRID_MAX_SHARED of the
+# points may then share a cell (a centroid within a hair of a wall of its cell)
+GRID_MIN_RESULTANT = 0.15
+GRID_MAX_SHARED = 0.1
+GRID_SAMPLE = 600
+GRID_REFINE_SAMPLE = 6000
+GRID_TABLE_CELLS = 4_000_000  # a dense lookup table up to 32 MB (a 6 x 6 x 3 m room at 3 cm)
+_GRID_CACHE: OrderedDict = OrderedDict()
+_GRID_CACHE_SIZE = 4
+
+
+def _resultants(x: np.ndarray, pitches: np.ndarray, weights: np.ndarray | None = None
+                ) -> np.ndarray:
+    """Return (P, 3): per candidate pitch and axis, the resultant length of
+    ``exp(2 pi i x / pitch)`` (weighted mean over the points: ``weights`` (N, 3))."""
+    phase = (2.0 * np.pi) * x[None, :, :] / pitches[:, None, None]
+    if weights is None:
+        return np.hypot(np.cos(phase).mean(axis=1), np.sin(phase).mean(axis=1))
+    w = weights / weights.sum(axis=0)
+    return np.hypot((np.cos(phase) * w).sum(axis=1), (np.sin(phase) * w).sum(axis=1))
+
+
+def _in_plane(points: np.ndarray, tree: cKDTree, rows: np.ndarray) -> np.ndarray:
+    """Return (M, 3) ``1 - n_a^2`` of the local surface normals at ``rows``: how much axis a
+    lies in the surface (a surface across axis a puts its centroids wherever the surface is
+    along a, not at the cells' centres, so it says nothing about the grid's phase there)."""
+    cov, _ = neighbourhoods(points, 12, 1e-3, tree, rows)
+    return np.clip(np.einsum("mii->mi", cov) - 1e-3, 0.0, 1.0) / (1.0 - 1e-3)
+
+
+@dataclass(frozen=True)
+class VoxelGrid:
+    """The cubic grid a voxel-centroid map was made on: cell (i, j, k) spans
+    ``origin + pitch * ([i, i + 1) x [j, j + 1) x [k, k + 1))`` (:func:`voxel_grid`).
+
+    ``resultant``: the smallest axis's resultant length at the pitch; ``shared``: the share of
+    the map's points that fell into an already occupied cell (the first one keeps it).
+    """
+
+    pitch: float
+    origin: np.ndarray
+    resultant: float
+    shared: float
+    lo: np.ndarray = field(repr=False)
+    dims: np.ndarray = field(repr=False)
+    cells: np.ndarray = field(repr=False)
+    rows: np.ndarray = field(repr=False)
+
+    table: np.ndarray | None = field(default=None, repr=False)
+
+    def lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return (hit (M,) bool, the map row of the cell each point lies in, -1 where the
+        cell holds no map point)."""
+        k = np.floor((points - self.origin) / self.pitch).astype(np.int64) - self.lo
+        inside = np.all((k >= 0) & (k < self.dims), axis=1)
+        k = np.where(inside[:, None], k, 0)
+        key = (k[:, 0] * self.dims[1] + k[:, 1]) * self.dims[2] + k[:, 2]
+        if self.table is not None:  # a dense table over the map's box (rooms)
+            rows = np.where(inside, self.table[key], -1)
+            return rows >= 0, rows
+        pos = np.minimum(np.searchsorted(self.cells, key), len(self.cells) - 1)
+        hit = inside & (self.cells[pos] == key)
+        return hit, np.where(hit, self.rows[pos], -1)
+
+
+def voxel_grid(points: np.ndarray, tree: cKDTree | None = None) -> VoxelGrid | None:
+    """Return the grid of a voxel-centroid map (one point per cell, the mean of the cell's
+    points: Open3D's ``voxel_down_sample``, ``SemanticCloud.fuse_voxels``), or None.
+
+    A cell's centroid lies inside its cell, and along a surface near the cell's centre, so on
+    every axis the coordinates modulo the pitch gather about the centres' phase: the resultant
+    length of ``exp(2 pi i x / pitch)`` is large at the true pitch and near zero at others or
+    on a cloud that was not voxelised. Three steps over samples: the differences to the
+    nearest neighbours (near multiples of the pitch) give a broad maximum; the coordinates
+    themselves, whose maximum is about pitch / extent wide, are searched within 12 % of it,
+    then within 0.15 % on a larger sample (the maximum interpolated by a parabola); the
+    phase is the resultant's angle. Results are cached by content (a map is registered to
+    many times). A voxel lattice (voxel centres, :func:`lattice_pitch`) passes too; callers
+    check that first.
+    """
+    points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
+    key = (points.shape, hashlib.blake2b(points.tobytes(), digest_size=16).digest())
+    if key in _GRID_CACHE:
+        _GRID_CACHE.move_to_end(key)
+        return _GRID_CACHE[key]
+    grid = _find_grid(points, tree)
+    _GRID_CACHE[key] = grid
+    if len(_GRID_CACHE) > _GRID_CACHE_SIZE:
+        _GRID_CACHE.popitem(last=False)
+    return grid
+
+
+def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
+    if len(points) < 50:
+        return None
+    tree = cKDTree(points) if tree is None else tree
+    sel_rows = np.arange(0, len(points), max(1, len(points) // GRID_SAMPLE))
+    sel = points[sel_rows]
+    dist, idx = tree.query(sel, k=7)
+    spacing = float(np.median(dist[:, 1]))
+    if not spacing > 0:
+        return None
+    near = dist[:, 1:] < 3.0 * spacing
+    diffs = (points[idx[:, 1:]] - sel[:, None, :])[near]
+    coarse = np.geomspace(0.8 * spacing, 3.0 * spacing, 40)
+    p0 = coarse[int(np.argmax(_resultants(diffs, coarse).mean(axis=1)))]
+    centre0 = sel.mean(axis=0)  # phases about the middle: half the lever arm of a pitch error
+    extent = float(np.ptp(sel, axis=0).max())
+    step = 0.25 * p0 / max(extent, p0)  # a quarter of the sharp maximum's width
+    fine = p0 * (1.0 + np.arange(-0.12, 0.12 + step, step))
+    w_sel = _in_plane(points, tree, sel_rows)
+    p1 = float(fine[int(np.argmax(_resultants(sel - centre0, fine, w_sel).mean(axis=1)))])
+    wide_rows = np.arange(0, len(points), max(1, len(points) // GRID_REFINE_SAMPLE))
+    wide = points[wide_rows] - centre0
+    w_wide = _in_plane(points, tree, wide_rows)
+    steps = p1 * (1.0 + np.linspace(-0.0015, 0.0015, 31))
+    score = _resultants(wide, steps, w_wide).mean(axis=1)
+    j = int(np.clip(np.argmax(score), 1, len(steps) - 2))
+    y0, y1, y2 = score[j - 1: j + 2]
+    shift = 0.5 * (y0 - y2) / (y0 - 2.0 * y1 + y2) if y0 - 2.0 * y1 + y2 < 0 else 0.0
+    pitch = float(steps[j] + np.clip(shift, -1.0, 1.0) * (steps[1] - steps[0]))
+    resultant = _resultants(wide, np.array([pitch]), w_wide)[0]
+    if resultant.min() < GRID_MIN_RESULTANT:
+        return None
+    phase = (2.0 * np.pi) * wide / pitch
+    centre = centre0 + np.arctan2((np.sin(phase) * w_wide).sum(axis=0),
+                                  (np.cos(phase) * w_wide).sum(axis=0)) * pitch / (2.0 * np.pi)
+    origin = centre - 0.5 * pitch
+    keys = np.floor((points - origin) / pitch).astype(np.int64)
+    lo = keys.min(axis=0)
+    dims = keys.max(axis=0) - lo + 1
+    if np.sum(np.log2(dims.astype(float))) >= 62:
+        return None
+    k = keys - lo
+    linear = (k[:, 0] * dims[1] + k[:, 1]) * dims[2] + k[:, 2]
+    order = np.argsort(linear, kind="stable")
+    cells = linear[order]
+    repeat = np.flatnonzero(cells[1:] == cells[:-1]) + 1
+    shared = len(repeat) / len(points)
+    if shared > GRID_MAX_SHARED:
+        return None  # many points share cells: not a centroid map on this grid
+    keep = np.ones(len(cells), bool)
+    keep[repeat] = False
+    cells, rows = cells[keep], order[keep]
+    table = None
+    if int(np.prod(dims)) <= GRID_TABLE_CELLS:
+        table = np.full(int(np.prod(dims)), -1, dtype=np.int64)
+        table[cells] = rows
+    return VoxelGrid(pitch, origin, float(resultant.min()), shared, lo, dims, cells, rows,
+                     table)
 
 
 @dataclass(frozen=True)
