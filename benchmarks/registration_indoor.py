@@ -52,7 +52,8 @@ and the covariance of those estimates about their mean, the spread the grid's ph
 causes, is added to the reported covariance: the printed mean NEES with it says how much
 of the gap that term would close. It needs the points the map was made from, which a
 registration of a given map does not have: a measurement, not an estimator
-(docs/registration.md, "Where the room gap comes from").
+(docs/registration.md, "Where the room gap comes from"). The K maps push the room map's grid
+out of ``voxel_grid``'s cache, so times in such a run include finding it again.
 
 Usage::
 

@@ -209,7 +209,7 @@ GRID_MIN_RESULTANT = 0.15
 GRID_MAX_SHARED = 0.1
 GRID_SAMPLE = 600
 GRID_REFINE_SAMPLE = 6000
-GRID_TABLE_CELLS = 4_000_000  # a dense lookup table up to 32 MB (a 6 x 6 x 3 m room at 3 cm)
+GRID_TABLE_CELLS = 4_000_000  # a dense lookup table up to 16 MB (a 6 x 6 x 3 m room at 3 cm)
 _GRID_CACHE: OrderedDict = OrderedDict()
 _GRID_CACHE_SIZE = 4
 
@@ -261,7 +261,7 @@ class VoxelGrid:
         k = np.where(inside[:, None], k, 0)
         key = (k[:, 0] * self.dims[1] + k[:, 1]) * self.dims[2] + k[:, 2]
         if self.table is not None:  # a dense table over the map's box (rooms)
-            rows = np.where(inside, self.table[key], -1)
+            rows = np.where(inside, self.table[key], -1).astype(np.int64)
             return rows >= 0, rows
         pos = np.minimum(np.searchsorted(self.cells, key), len(self.cells) - 1)
         hit = inside & (self.cells[pos] == key)
@@ -349,7 +349,7 @@ def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
     cells, rows = cells[keep], order[keep]
     table = None
     if int(np.prod(dims)) <= GRID_TABLE_CELLS:
-        table = np.full(int(np.prod(dims)), -1, dtype=np.int64)
+        table = np.full(int(np.prod(dims)), -1, dtype=np.int32)
         table[cells] = rows
     return VoxelGrid(pitch, origin, float(resultant.min()), shared, lo, dims, cells, rows,
                      table)

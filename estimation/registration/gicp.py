@@ -311,9 +311,11 @@ class CovarianceDiagnostic:
     trusted : correlation_ratio <= RegistrationConfig.trust_ratio, and the source does not lie
         inside a target without a lattice term (:func:`source_inside_target`: a part of a
         map registered to that map, e.g. a scan against a voxel-centroid map). There the
-        map's representation error biases the fit coherently over the whole overlap, which
-        no residual statistic showed: measured mean NEES 11.6-11.8 on a real Kinect room and
-        ~1500-2200 on ICL-NUIM's rendered office (docs/registration.md, "Real rooms")
+        map's representation error (where its grid cuts the surfaces) biases the fit
+        coherently over the whole overlap, which no residual statistic showed: measured mean
+        NEES 11.5 on a real Kinect room and 414 on ICL-NUIM's office with the nearest
+        centroid, 9.0 and 26 with ``voxel_matching`` (docs/registration.md, "Real rooms",
+        "Where the room gap comes from")
     model_covariance : (6, 6) the quantisation part of the reported covariance (zeros
         without a lattice); ``covariance - model_covariance`` is the point-noise sandwich
     reassociation_gain : mean variance ratio, trace(P_fixed^-1 P_noise) / 6, of the
