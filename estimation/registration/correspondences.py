@@ -208,7 +208,7 @@ def lattice_pitch(points: np.ndarray, tree: cKDTree | None = None, sample: int =
 GRID_MIN_RESULTANT = 0.15
 GRID_MAX_SHARED = 0.1
 GRID_SAMPLE = 600
-GRID_REFINE_SAMPLE = 6000
+GRID_REFINE_SAMPLE = 4000
 GRID_TABLE_CELLS = 4_000_000  # a dense lookup table up to 16 MB (a 6 x 6 x 3 m room at 3 cm)
 _GRID_CACHE: OrderedDict = OrderedDict()
 _GRID_CACHE_SIZE = 4
@@ -305,8 +305,8 @@ def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
     spacing = float(np.median(dist[:, 1]))
     if not spacing > 0:
         return None
-    near = dist[:, 1:] < 3.0 * spacing
-    diffs = (points[idx[:, 1:]] - sel[:, None, :])[near]
+    near = dist[::2, 1:] < 3.0 * spacing
+    diffs = (points[idx[::2, 1:]] - sel[::2, None, :])[near]
     coarse = np.geomspace(0.8 * spacing, 3.0 * spacing, 40)
     p0 = coarse[int(np.argmax(_resultants(diffs, coarse).mean(axis=1)))]
     centre0 = sel.mean(axis=0)  # phases about the middle: half the lever arm of a pitch error
@@ -318,7 +318,7 @@ def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
     wide_rows = np.arange(0, len(points), max(1, len(points) // GRID_REFINE_SAMPLE))
     wide = points[wide_rows] - centre0
     w_wide = _in_plane(points, tree, wide_rows)
-    steps = p1 * (1.0 + np.linspace(-0.0015, 0.0015, 31))
+    steps = p1 * (1.0 + np.linspace(-0.0015, 0.0015, 21))
     score = _resultants(wide, steps, w_wide).mean(axis=1)
     j = int(np.clip(np.argmax(score), 1, len(steps) - 2))
     y0, y1, y2 = score[j - 1: j + 2]
