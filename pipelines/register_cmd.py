@@ -226,8 +226,15 @@ def _summary(out: dict) -> str:
                  f"r_err={out['r_err_rad']:.4f} rad")
     diagnostic = out.get("covariance_diagnostic")
     if diagnostic and not diagnostic["covariance_trusted"]:
-        text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
-                 f"ratio {diagnostic['correlation_ratio']:.2f})")
+        from estimation.registration.gicp import source_inside_target
+
+        overlap = diagnostic.get("overlap")
+        if overlap is not None and source_inside_target(*overlap):
+            text += ("; covariance not trusted (the source lies inside a map: the map's "
+                     "representation error is not in it)")
+        else:
+            text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
+                     f"ratio {diagnostic['correlation_ratio']:.2f})")
     return text
 
 

@@ -72,3 +72,19 @@ def test_register_failure_exits_1_with_reason(tmp_path):
                  "--init", str(tmp_path / "far.txt"), "-o", str(out)])
     data = json.loads(out.read_text())
     assert code == 1 and not data["converged"] and "correspondences" in data["reason"]
+
+
+def test_the_summary_says_why_the_covariance_is_not_trusted():
+    from pipelines.register_cmd import _summary
+
+    out = {"method": "gicp", "converged": True, "reason": "converged", "iterations": 7,
+           "inliers": 100, "time_s": 0.1,
+           "covariance_diagnostic": {"covariance_trusted": False, "correlation_ratio": 0.99,
+                                     "overlap": [1.0, 0.3]}}
+    assert "the source lies inside a map" in _summary(out)
+    out["covariance_diagnostic"].update(overlap=[0.7, 0.7], correlation_ratio=5.2)
+    assert "residuals correlated beyond its blocks: ratio 5.20" in _summary(out)
+    out["covariance_diagnostic"]["overlap"] = None
+    assert "ratio 5.20" in _summary(out)
+    out["covariance_diagnostic"]["covariance_trusted"] = True
+    assert "not trusted" not in _summary(out)
