@@ -9,13 +9,14 @@ inside the map, or the map is a voxel lattice, nothing changes; bad values are r
 """
 from __future__ import annotations
 
+import gtsam
 import numpy as np
 import pytest
 
 from benchmarks.registration import D_FINAL, OFFSETS, register_ours
 from benchmarks.registration_indoor import half_room_source, labelled, room_cloud, voxel_map
 from estimation.errors import EstimationError
-from estimation.registration import Registration, RegistrationConfig, pose_error
+from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
 from estimation.registration.correspondences import voxel_grid
 from estimation.registration.metrics import offset_about_centroid
 
@@ -121,6 +122,22 @@ def test_nothing_changes_where_the_source_does_not_lie_inside_or_on_a_lattice(rn
         b = Registration(part, target, RegistrationConfig(voxel_matching=None, **cfg)).run(init)
         np.testing.assert_array_equal(a.T, b.T)
         np.testing.assert_array_equal(a.covariance, b.covariance)
+
+
+def test_a_start_without_annealing_still_matches_by_cell(rng):
+    # the first final-stage iteration may be too far off to see the source inside the map;
+    # convergence then decides, and the iterations go on with the cells
+    room = thick_room(rng)
+    target = centroids(room, 0.03, np.array([0.004, 0.011, -0.008]))
+    source = room[room[:, 0] < 2.0][::20] + rng.normal(scale=0.003, size=(1, 3))
+    init = np.eye(4)
+    init[:3, :3] = gtsam.Rot3.Rz(0.1).matrix()
+    init[:3, 3] = [0.2, -0.15, 0.08]
+    reg = Registration(source, target, RegistrationConfig())
+    assert not gicp.source_inside_target(*reg.overlap(init, reg.cluster_size(init, None)))
+    result = reg.run(init)
+    assert result.converged
+    assert result.diagnostic.voxel_pitch == pytest.approx(0.03, rel=1e-3)
 
 
 def _errors(points, labels, target, trials, **options):

@@ -528,7 +528,8 @@ class Registration:
         self._class_cache: dict = {}
         self._class_cache_owner: NeighbourCache | None = None
         self._sigma: float | None = None  # Semantic-ICP's EM residual sigma, reset by run()
-        self._grid: VoxelGrid | str | None = "unset"  # same_voxel's grid, decided per run()
+        # same_voxel's grid, decided per run(): 0 = not yet, 1 = at convergence
+        self._grid: VoxelGrid | int | None = 0
         self._alpha: float = self.config.cauchy_alpha  # the kernel's alpha in use (run())
 
     @staticmethod
@@ -683,14 +684,31 @@ class Registration:
             corr = self.same_voxel(T, corr)
         return corr
 
+    def _voxel_grid_found(self, T: np.ndarray) -> bool:
+        """Decide same-voxel matching at ``T`` if still undecided: True (and the grid kept)
+        where the source lies inside the target, the target is no lattice and its grid is
+        found; False otherwise, and for good once decided."""
+        if not isinstance(self._grid, int) or self.config.voxel_matching is None:
+            return False
+        self._grid = None
+        if self._lattice is not None:
+            return False
+        if source_inside_target(*self.overlap(T, self.cluster_size(T, None),
+                                              OVERLAP_SAMPLES // 4)):
+            self._grid = voxel_grid(self.target, self.target_tree)
+        return self._grid is not None
+
     def same_voxel(self, T: np.ndarray, corr: Correspondences) -> Correspondences:
         """Return ``corr`` with the pairs on surfaces parallel to a voxel-centroid map's grid
         matched to the centroid of the source point's own cell (``voxel_matching``).
 
-        Decided once per run, at the first call (the first iteration at the final
-        correspondence distance): only where the source lies inside the target
-        (:func:`source_inside_target`, the overlap at ``T``), the target is no voxel lattice
-        and its grid is found (:func:`.correspondences.voxel_grid`). A pair is moved when its
+        Decided at the first call (the first iteration at the final correspondence
+        distance), or, where the source did not lie inside the target there (a start without
+        annealing may be further off), once more at convergence, the iterations then going on
+        with the cells if it does (:meth:`_voxel_grid_found`): only where the source
+        lies inside the target (:func:`source_inside_target`, the overlap at ``T`` on a
+        quarter of the points), the target is no voxel lattice and its grid is found
+        (:func:`.correspondences.voxel_grid`). A pair is moved when its
         nearest centroid's normal lies within ``voxel_matching`` degrees of a grid axis and
         the source point's cell holds a centroid (of the candidate's class, in Semantic-ICP);
         its weight (the boundary gate's, the E-step's) is kept.
@@ -698,12 +716,9 @@ class Registration:
         angle = self.config.voxel_matching
         if angle is None or not len(corr):
             return corr
-        if isinstance(self._grid, str):
-            self._grid = None
-            if self._lattice is None and source_inside_target(
-                    *self.overlap(T, self.cluster_size(T, corr), OVERLAP_SAMPLES // 4)):
-                self._grid = voxel_grid(self.target, self.target_tree)
-        if self._grid is None:
+        if type(self._grid) is int and self._grid == 0 and not self._voxel_grid_found(T):
+            self._grid = 1  # not inside (yet): convergence decides (run())
+        if not isinstance(self._grid, VoxelGrid):
             return corr
         # the plane-regularised covariance is I - (1 - eps) n n^T: n_a^2 from its diagonal
         axes = np.arange(3)
@@ -860,7 +875,7 @@ class Registration:
         start = time.perf_counter()
         T = _as_transform(init)
         self._sigma = None
-        self._grid = "unset"
+        self._grid = 0
         self._alpha = cfg.cauchy_alpha
         if len(self.source) < cfg.min_inliers or len(self.target) < cfg.min_inliers:
             return self._failed(T, f"too few points: source {len(self.source)}, target "
@@ -935,11 +950,17 @@ class Registration:
                 continue
             if step < cfg.tolerance:
                 T = T_new
+                if self._voxel_grid_found(T):  # inside a centroid map: on, matched by cell
+                    T_prev = None
+                    continue
                 converged, reason = True, "converged"
                 break
             if two_cycle:  # stop in the middle of the cycle
                 half = 0.5 * gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new)))
                 T = (gtsam.Pose3(T) * gtsam.Pose3.Expmap(half)).matrix()
+                if self._voxel_grid_found(T):
+                    T_prev = None
+                    continue
                 converged, reason = True, "converged (two-cycle of correspondence sets)"
                 break
             T_prev, T = T, T_new
@@ -976,6 +997,8 @@ class Registration:
 
     def _finish(self, T, d_max, converged, reason, iterations, cost_log, start):
         cfg = self.config
+        if isinstance(self._grid, int):  # still undecided: the matching stays as it ran
+            self._grid = None
         sol = self.solution_terms(T, d_max)
         if sol is None:
             return self._failed(T, "too few correspondences at the solution",
