@@ -530,6 +530,7 @@ class Registration:
         self._sigma: float | None = None  # Semantic-ICP's EM residual sigma, reset by run()
         # same_voxel's grid, decided per run(): 0 = not yet, 1 = at convergence
         self._grid: VoxelGrid | int | None = 0
+        self._aligned: np.ndarray | None = None  # per target row: normal along a grid axis
         self._alpha: float = self.config.cauchy_alpha  # the kernel's alpha in use (run())
 
     @staticmethod
@@ -698,6 +699,22 @@ class Registration:
             self._grid = voxel_grid(self.target, self.target_tree)
         return self._grid is not None
 
+    def _grid_aligned(self, rows: np.ndarray, angle: float) -> np.ndarray:
+        """Return (M,) bool: the target normals at ``rows`` within ``angle`` degrees of a grid
+        axis (each row worked out once per run, from its covariance)."""
+        if self._aligned is None or len(self._aligned) != len(self.target):
+            self._aligned = np.full(len(self.target), -1, dtype=np.int8)
+        flags = self._aligned[rows]
+        todo = np.unique(rows[flags < 0])
+        if len(todo):
+            # the plane-regularised covariance is I - (1 - eps) n n^T: n_a^2 on its diagonal
+            axes = np.arange(3)
+            diagonal = _rows_of(self.target_cov, todo)[todo[:, None], axes, axes]
+            self._aligned[todo] = diagonal.min(axis=1) <= 1.0 - (
+                1.0 - self.config.epsilon) * np.cos(np.deg2rad(angle)) ** 2
+            flags = self._aligned[rows]
+        return flags > 0
+
     def same_voxel(self, T: np.ndarray, corr: Correspondences) -> Correspondences:
         """Return ``corr`` with the pairs on surfaces parallel to a voxel-centroid map's grid
         matched to the centroid of the source point's own cell (``voxel_matching``).
@@ -720,11 +737,7 @@ class Registration:
             self._grid = 1  # not inside (yet): convergence decides (run())
         if not isinstance(self._grid, VoxelGrid):
             return corr
-        # the plane-regularised covariance is I - (1 - eps) n n^T: n_a^2 from its diagonal
-        axes = np.arange(3)
-        diagonal = _rows_of(self.target_cov, corr.target_idx)[corr.target_idx[:, None], axes, axes]
-        aligned = np.flatnonzero(diagonal.min(axis=1) <= 1.0 - (1.0 - self.config.epsilon)
-                                 * np.cos(np.deg2rad(angle)) ** 2)
+        aligned = np.flatnonzero(self._grid_aligned(corr.target_idx, angle))
         if not len(aligned):
             return corr
         moved = transform_points(T, self.source[corr.source_idx[aligned]])
