@@ -183,6 +183,22 @@ def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: 
 
 
 @numba.njit(cache=True)
+def _whitened_residual(T: np.ndarray, xs: np.ndarray, xt: np.ndarray, Um: np.ndarray,
+                       v: np.ndarray) -> float:
+    """Write ``U^T r`` (``r = x_t - R x_s - t``) of one pair into ``v`` (3,); return its
+    squared norm, the Mahalanobis e."""
+    x0, x1, x2 = xs[0], xs[1], xs[2]
+    r0 = xt[0] - (T[0, 0] * x0 + T[0, 1] * x1 + T[0, 2] * x2 + T[0, 3])
+    r1 = xt[1] - (T[1, 0] * x0 + T[1, 1] * x1 + T[1, 2] * x2 + T[1, 3])
+    r2 = xt[2] - (T[2, 0] * x0 + T[2, 1] * x1 + T[2, 2] * x2 + T[2, 3])
+    ee = 0.0
+    for i in range(3):
+        v[i] = Um[i, 0] * r0 + Um[i, 1] * r1 + Um[i, 2] * r2
+        ee += v[i] * v[i]
+    return ee
+
+
+@numba.njit(cache=True)
 def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
                sqrt_w: np.ndarray, want_jacobians: bool):
     """Return (whitened residuals (M,3), Jacobians (M,3,6), Mahalanobis e (M,)).
@@ -195,17 +211,12 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
     e = np.empty(n)
     J = np.empty((n if want_jacobians else 0, 3, 6))
     UR = np.empty((3, 3))
+    v = np.empty(3)
     for m in range(n):
         x0, x1, x2 = source[m, 0], source[m, 1], source[m, 2]
-        r = np.empty(3)
+        e[m] = _whitened_residual(T, source[m], target[m], Ut[m], v)
         for i in range(3):
-            r[i] = target[m, i] - (T[i, 0] * x0 + T[i, 1] * x1 + T[i, 2] * x2 + T[i, 3])
-        ee = 0.0
-        for i in range(3):
-            v = Ut[m, i, 0] * r[0] + Ut[m, i, 1] * r[1] + Ut[m, i, 2] * r[2]
-            ee += v * v
-            rw[m, i] = v * sqrt_w[m]
-        e[m] = ee
+            rw[m, i] = v[i] * sqrt_w[m]
         if want_jacobians:
             for i in range(3):
                 for j in range(3):
@@ -230,17 +241,9 @@ def gicp_mahalanobis(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
     (source[source_rows[m]], target[target_rows[m]])."""
     n = source_rows.shape[0]
     e = np.empty(n)
-    r = np.empty(3)
+    v = np.empty(3)
     for m in range(n):
-        s, t = source_rows[m], target_rows[m]
-        x0, x1, x2 = source[s, 0], source[s, 1], source[s, 2]
-        for i in range(3):
-            r[i] = target[t, i] - (T[i, 0] * x0 + T[i, 1] * x1 + T[i, 2] * x2 + T[i, 3])
-        ee = 0.0
-        for i in range(3):
-            v = Ut[m, i, 0] * r[0] + Ut[m, i, 1] * r[1] + Ut[m, i, 2] * r[2]
-            ee += v * v
-        e[m] = ee
+        e[m] = _whitened_residual(T, source[source_rows[m]], target[target_rows[m]], Ut[m], v)
     return e
 
 
