@@ -192,9 +192,10 @@ class RegistrationConfig:
         parallel to it cuts is stored as two sheets of centroids, one per column whatever
         their point counts: the nearest centroid sees their plain mean, the cell's own
         centroid the mean of the same points. ICL-NUIM's office against its 3 cm map: median
-        error 4.1 -> 1.3 mm (docs/registration.md, "Same-voxel correspondences"). None = the
-        nearest centroid throughout (the earlier estimator). GICP only; not on a voxel
-        lattice (voxel centres: see ``surface_radius`` and ``quantisation``)
+        d_SE3 3.46 -> 1.31 mm (docs/registration.md, "Same-voxel correspondences"). None = the
+        nearest centroid throughout (the earlier estimator). Semantic-ICP: a class candidate
+        moves only to a centroid of its class. Not on a voxel lattice (voxel centres: see
+        ``surface_radius`` and ``quantisation``)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
         choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise
@@ -314,7 +315,7 @@ class CovarianceDiagnostic:
         map's representation error (where its grid cuts the surfaces) biases the fit
         coherently over the whole overlap, which no residual statistic showed: measured mean
         NEES 11.5 on a real Kinect room and 414 on ICL-NUIM's office with the nearest
-        centroid, 9.0 and 26 with ``voxel_matching`` (docs/registration.md, "Real rooms",
+        centroid, 9.2 and 32 with ``voxel_matching`` (docs/registration.md, "Real rooms",
         "Where the room gap comes from")
     model_covariance : (6, 6) the quantisation part of the reported covariance (zeros
         without a lattice); ``covariance - model_covariance`` is the point-noise sandwich
