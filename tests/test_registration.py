@@ -457,6 +457,62 @@ def test_posterior_estep_normalises_per_source_point():
     assert np.all(weight.weights <= 0.9 * 0.9 + 1e-12)
 
 
+def _brute_force_estep(moved, probs, index, d_max, sigma, top, nearest, posterior,
+                       label_noise, min_weight=1e-3, min_class_prob=0.1):
+    """{(source row, target row): weight} of the E-step from its definition, by brute force."""
+    d = np.linalg.norm(moved[:, None, :] - index.points[None, :, :], axis=2)
+    n, c = probs.shape
+    cands = {}
+    for i in range(n):
+        nn = int(np.argmin(d[i])) if nearest and d[i].min() <= d_max else -1
+        if nn >= 0:
+            cands[i, nn] = (probs[i] @ index.probs[nn], d[i, nn])
+        for rank, cls in enumerate(np.argsort(-probs[i], kind="stable")[:top]):
+            if rank and probs[i, cls] < min_class_prob:
+                continue
+            rows = np.flatnonzero(index.labels == cls)
+            if not len(rows) or d[i, rows].min() > d_max:
+                continue
+            j = int(rows[np.argmin(d[i, rows])])
+            if j != nn:
+                cands[i, j] = (probs[i, cls] * index.probs[j, cls], d[i, j])
+    w = {k: ((1 - label_noise) * p + label_noise / c) * np.exp(-0.5 * (r / sigma) ** 2)
+         for k, (p, r) in cands.items()}
+    if posterior:
+        total = np.zeros(n)
+        for (i, _), v in w.items():
+            total[i] += v
+        w = {k: v / total[k[0]] for k, v in w.items()}
+    return {k: v for k, v in w.items() if v >= min_weight}
+
+
+@pytest.mark.parametrize("posterior, label_noise, top", [(True, 0.2, 2), (True, 0.0, 3),
+                                                         (False, 0.0, 2), (False, 0.1, 1)])
+def test_estep_candidates_equal_their_definition(rng, posterior, label_noise, top):
+    """The compiled candidate assembly (top classes, class search, nearest neighbour counted
+    once, label noise, posterior normalisation, the weight floor) against brute force, with
+    soft labels so that the second and third classes are searched too."""
+    c = 4
+    target = rng.uniform(0, 1, (300, 3))
+    probs_t = rng.dirichlet(np.ones(c) * 0.3, 300)
+    index = SemanticIndex(target, probs_t)
+    moved = rng.uniform(-0.1, 1.1, (200, 3))
+    probs = rng.dirichlet(np.ones(c) * 0.5, 200)
+    d_max, sigma = 0.15, 0.05
+    nearest = cKDTree(target).query(moved, distance_upper_bound=d_max) if posterior else None
+    corr = semantic_correspondences(moved, probs, index, d_max, residual_sigma=sigma,
+                                    top_classes=top, nearest=nearest, posterior=posterior,
+                                    label_noise=label_noise)
+    expected = _brute_force_estep(moved, probs, index, d_max, sigma, top, posterior,
+                                  posterior, label_noise)
+    got = {(int(i), int(j)): w for i, j, w in zip(corr.source_idx, corr.target_idx,
+                                                 corr.weights)}
+    assert len(got) == len(corr.weights) and set(got) == set(expected)
+    np.testing.assert_allclose([got[k] for k in expected], list(expected.values()), rtol=1e-12)
+    np.testing.assert_allclose(corr.distances, np.linalg.norm(
+        moved[corr.source_idx] - target[corr.target_idx], axis=1), rtol=1e-12)
+
+
 def test_bad_semantic_estep_is_rejected():
     with pytest.raises(EstimationError, match="semantic_estep"):
         RegistrationConfig(semantic_estep="bayes")

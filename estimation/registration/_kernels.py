@@ -343,3 +343,117 @@ def cached_nearest(points, anchor, reach, candidates, target, d_max):
             dist[m] = np.sqrt(best)
             idx[m] = best_j
     return dist, idx, stale
+
+
+@numba.njit(cache=True)
+def top_classes(probs, top):
+    """Each row's ``top`` most probable classes, best first (ties: the lower class, as
+    repeated ``argmax`` with the chosen entries masked)."""
+    n, c = probs.shape
+    order = np.empty((n, top), dtype=np.int64)
+    for i in range(n):
+        for rank in range(top):
+            best = -1
+            value = 0.0
+            for j in range(c):
+                taken = False
+                for r in range(rank):
+                    if order[i, r] == j:
+                        taken = True
+                if taken:
+                    continue
+                if best < 0 or probs[i, j] > value:
+                    best = j
+                    value = probs[i, j]
+            order[i, rank] = best
+    return order
+
+
+@numba.njit(cache=True)
+def group_rows(keys, searched, n_groups):
+    """Rows with ``searched`` grouped by ``keys`` (0 <= key < n_groups), each group in row
+    order: (starts (n_groups + 1), rows) so that group g is rows[starts[g]:starts[g + 1]]."""
+    starts = np.zeros(n_groups + 1, dtype=np.int64)
+    for i in range(keys.shape[0]):
+        if searched[i]:
+            starts[keys[i] + 1] += 1
+    for g in range(n_groups):
+        starts[g + 1] += starts[g]
+    fill = starts[:-1].copy()
+    rows = np.empty(starts[n_groups], dtype=np.int64)
+    for i in range(keys.shape[0]):
+        if searched[i]:
+            rows[fill[keys[i]]] = i
+            fill[keys[i]] += 1
+    return starts, rows
+
+
+@numba.njit(cache=True)
+def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target, rank_dist,
+                        classes, source_probs, target_probs, label_noise):
+    """Semantic-ICP's candidate list: the geometric nearest neighbours (``nearest`` >= 0),
+    then for each rank and each class of ``classes`` in turn the class candidates
+    (``rank_target`` >= 0) that are not that nearest neighbour, each block in row order;
+    their priors (label agreements, with ``label_noise``). Returns (source rows, target
+    rows, distances, priors)."""
+    n, top = order.shape
+    count = 0
+    for i in range(n):
+        if nearest[i] >= 0:
+            count += 1
+    for rank in range(top):
+        for i in range(n):
+            t = rank_target[rank, i]
+            if t >= 0 and t != nearest[i]:
+                count += 1
+    src = np.empty(count, dtype=np.int64)
+    tgt = np.empty(count, dtype=np.int64)
+    dist = np.empty(count)
+    prior = np.empty(count)
+    m = 0
+    for i in range(n):
+        if nearest[i] >= 0:
+            src[m], tgt[m], dist[m], prior[m] = i, nearest[i], nearest_dist[i], nearest_prior[i]
+            m += 1
+    for rank in range(top):
+        for k in range(classes.shape[0]):
+            c = classes[k]
+            for i in range(n):
+                t = rank_target[rank, i]
+                if t >= 0 and order[i, rank] == c and t != nearest[i]:
+                    src[m], tgt[m], dist[m] = i, t, rank_dist[rank, i]
+                    prior[m] = source_probs[i, c] * target_probs[t, c]
+                    m += 1
+    if label_noise > 0.0:
+        keep = 1.0 - label_noise
+        floor = label_noise / source_probs.shape[1]
+        for m in range(count):
+            prior[m] = keep * prior[m] + floor
+    return src, tgt, dist, prior
+
+
+@numba.njit(cache=True)
+def normalise_keep(src, tgt, omega, dist, n, posterior, min_weight):
+    """The candidates with weight >= ``min_weight``, the weights first normalised over each
+    source row's candidates where ``posterior`` (sums in list order, as ``np.bincount``)."""
+    count = src.shape[0]
+    if posterior:
+        total = np.zeros(n)
+        for m in range(count):
+            total[src[m]] += omega[m]
+        for m in range(count):
+            omega[m] = omega[m] / max(total[src[m]], 1e-300)
+    kept = 0
+    for m in range(count):
+        if omega[m] >= min_weight:
+            kept += 1
+    out_src = np.empty(kept, dtype=np.int64)
+    out_tgt = np.empty(kept, dtype=np.int64)
+    out_w = np.empty(kept)
+    out_d = np.empty(kept)
+    k = 0
+    for m in range(count):
+        if omega[m] >= min_weight:
+            out_src[k], out_tgt[k], out_w[k], out_d[k] = src[m], tgt[m], omega[m], dist[m]
+            k += 1
+    return out_src, out_tgt, out_w, out_d

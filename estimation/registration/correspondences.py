@@ -531,28 +531,28 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         raise EstimationError(
             f"source has {c_src} classes but the target has {index.n_classes}")
     top = min(int(top_classes), c_src)
-    order = np.empty((n, top), dtype=np.int64)
-    masked = np.array(source_probs, dtype=float, copy=True)
-    for rank in range(top):  # top-k by repeated argmax: cheaper than a full argsort
-        order[:, rank] = masked.argmax(axis=1)
-        masked[np.arange(n), order[:, rank]] = -np.inf
-    src_rows, tgt_rows, dists, prior = [], [], [], []
+    source_probs = np.ascontiguousarray(source_probs, dtype=float)
+    order = _kernels.top_classes(source_probs, top)
     nn = np.full(n, -1, dtype=np.int64)
+    nn_dist = np.zeros(n)
+    nn_prior = np.zeros(n)
     if nearest is not None:
         dist, j = nearest
         ok = dist <= d_max
         rows = np.nonzero(ok)[0]
         nn[rows] = j[ok]
-        src_rows.append(rows)
-        tgt_rows.append(nn[rows])
-        dists.append(dist[ok])
-        prior.append(np.einsum("ij,ij->i", source_probs[rows], index.probs[nn[rows]]))
+        nn_dist[rows] = dist[ok]
+        nn_prior[rows] = np.einsum("ij,ij->i", source_probs[rows], index.probs[nn[rows]])
+    # each rank's class candidates, by row (-1: none within d_max, or not searched)
+    rank_target = np.full((top, n), -1, dtype=np.int64)
+    rank_dist = np.zeros((top, n))
     for rank in range(top):
-        cls_of_point = order[:, rank]
+        cls_of_point = np.ascontiguousarray(order[:, rank])
         searched = np.ones(n, bool) if rank == 0 else \
             source_probs[np.arange(n), cls_of_point] >= min_class_prob
+        starts, grouped = _kernels.group_rows(cls_of_point, searched, c_src)
         for c, tree in index.trees.items():
-            rows = np.nonzero((cls_of_point == c) & searched)[0]
+            rows = grouped[starts[c]:starts[c + 1]]
             if len(rows) == 0:
                 continue
             if caches is not None and tree.n >= 2:
@@ -563,28 +563,17 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                 dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
                                      workers=_workers(len(rows)))
             ok = np.isfinite(dist)
-            tgt = index.members[c][j[ok]]
-            fresh = tgt != nn[rows[ok]]  # the nearest neighbour already counts class c
-            if not fresh.any():
-                continue
-            rows, tgt, dist = rows[ok][fresh], tgt[fresh], dist[ok][fresh]
-            src_rows.append(rows)
-            tgt_rows.append(tgt)
-            dists.append(dist)
-            prior.append(source_probs[rows, c] * index.probs[tgt, c])
-    if not src_rows:
-        empty = np.zeros(0)
-        return Correspondences(empty.astype(np.int64), empty.astype(np.int64), empty, empty, n)
-    src = np.concatenate(src_rows)
-    tgt = np.concatenate(tgt_rows)
-    dist = np.concatenate(dists)
-    # eq. (5): label agreement p(c|x_s) p(c|x_t) times the residual likelihood under T_old
-    prior = np.concatenate(prior)
-    if label_noise > 0.0:
-        prior = (1.0 - label_noise) * prior + label_noise / c_src
+            rank_target[rank, rows[ok]] = index.members[c][j[ok]]
+            rank_dist[rank, rows[ok]] = dist[ok]
+    # the candidate list: the nearest neighbours, then each rank's classes in turn (a class
+    # candidate that is the point's nearest neighbour is not counted twice); eq. (5): the
+    # label agreement p(c|x_s) p(c|x_t) (with label noise) ...
+    classes = np.fromiter(index.trees, dtype=np.int64, count=len(index.trees))
+    src, tgt, dist, prior = _kernels.semantic_candidates(
+        nn, nn_dist, nn_prior, order, rank_target, rank_dist, classes, source_probs,
+        np.ascontiguousarray(index.probs, dtype=float), float(label_noise))
+    # ... times the residual likelihood under T_old
     omega = prior * np.exp(-0.5 * (dist / residual_sigma) ** 2)
-    if posterior:
-        total = np.bincount(src, omega, minlength=n)
-        omega = omega / np.maximum(total[src], 1e-300)
-    keep = omega >= min_weight
-    return Correspondences(src[keep], tgt[keep], omega[keep], dist[keep], n)
+    src, tgt, omega, dist = _kernels.normalise_keep(src, tgt, omega, dist, n, bool(posterior),
+                                                    float(min_weight))
+    return Correspondences(src, tgt, omega, dist, n)
