@@ -155,6 +155,7 @@ def _register(args, source, target, flip=None) -> dict:
             "overlap": (None if np.isnan(diagnostic.overlap[0])
                         else [float(v) for v in diagnostic.overlap]),
             "voxel_pitch_m": getattr(diagnostic, "voxel_pitch", None),
+            "crossing_bias_m": getattr(diagnostic, "crossing_bias", None),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:
@@ -231,7 +232,7 @@ def _summary(out: dict) -> str:
         overlap = diagnostic.get("overlap")
         if overlap is not None and source_inside_target(*overlap):
             text += ("; covariance not trusted (the source lies inside a map: the map's "
-                     "representation error is not in it)")
+                     "representation error is only partly in it)")
         else:
             text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
                      f"ratio {diagnostic['correlation_ratio']:.2f})")
