@@ -12,8 +12,9 @@ the error; the fixed-association one does not); Semantic-ICP's label noise keeps
 one-hot labels from pulling it off (with the boundary gate off: the gate removes most of that
 pull itself); a part registered to the map of an overlapping part (two scans of a room) stays
 off the map's edge with the boundary gate and is pulled into the overlap without it. Known gap
-(strict xfail): the mean NEES is above the chi-square bounds (the map's representation error
-is not modelled).
+(strict xfail): the mean NEES is above the chi-square bounds (8.2 against [4.8, 7.3]: the
+map's representation error is modelled only for the pairs matched by cell,
+tests/test_registration_crossings.py).
 """
 from __future__ import annotations
 
@@ -152,8 +153,10 @@ def test_the_boundary_gate_keeps_an_overlapping_part_off_the_maps_edge(room):
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 14, open: on voxel-centroid maps of real rooms "
-                   "the covariance misses the map's own representation error (mean NEES "
-                   "9.6 here, 11.8 on the benchmark's room; docs/registration.md)")
+                   "the covariance misses part of the map's own representation error (mean "
+                   "NEES 8.2 here, 7.8 on the benchmark's room, band [4.8, 7.3]; 9.6 and "
+                   "11.8 before same-voxel matching and the crossing term; "
+                   "docs/registration.md)")
 def test_covariance_is_consistent_on_a_real_room_against_its_voxel_map(forward):
     values = np.array([nees(err.tangent, r.covariance) for r, err in forward])
     assert not check_consistency(np.array(
@@ -178,7 +181,9 @@ def test_the_gap_is_where_the_voxel_grid_cuts_the_room(room, forward):
         with_phase.append(nees(err.tangent, r.covariance + C))
         spread.append(np.trace(C[3:, 3:]) / np.trace(r.covariance[3:, 3:]))
     assert np.median(spread) > 0.25, spread  # the phase alone moves it by half a sigma or more
-    assert np.mean(with_phase) < 0.75 * np.mean(plain), (plain, with_phase)
+    # (measured on these 6 trials: 8.0 -> 4.5 before the cell-crossing term, which models
+    # part of the phase for the pairs matched by cell; 6.8 -> 5.1 with it)
+    assert np.mean(with_phase) < 0.8 * np.mean(plain), (plain, with_phase)
 
 
 @pytest.mark.slow
