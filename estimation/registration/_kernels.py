@@ -388,6 +388,13 @@ def group_rows(keys, searched, n_groups):
     return starts, rows
 
 
+@numba.njit(cache=True, inline="always")
+def _pair_arrays(count):
+    """Empty (source rows, target rows, distances, weights) of ``count`` pairs."""
+    return (np.empty(count, dtype=np.int64), np.empty(count, dtype=np.int64),
+            np.empty(count), np.empty(count))
+
+
 @numba.njit(cache=True)
 def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target, rank_dist,
                         classes, source_probs, target_probs, label_noise):
@@ -406,10 +413,7 @@ def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target
             t = rank_target[rank, i]
             if t >= 0 and t != nearest[i]:
                 count += 1
-    src = np.empty(count, dtype=np.int64)
-    tgt = np.empty(count, dtype=np.int64)
-    dist = np.empty(count)
-    prior = np.empty(count)
+    src, tgt, dist, prior = _pair_arrays(count)
     m = 0
     for i in range(n):
         if nearest[i] >= 0:
@@ -447,10 +451,7 @@ def normalise_keep(src, tgt, omega, dist, n, posterior, min_weight):
     for m in range(count):
         if omega[m] >= min_weight:
             kept += 1
-    out_src = np.empty(kept, dtype=np.int64)
-    out_tgt = np.empty(kept, dtype=np.int64)
-    out_w = np.empty(kept)
-    out_d = np.empty(kept)
+    out_src, out_tgt, out_w, out_d = _pair_arrays(kept)
     k = 0
     for m in range(count):
         if omega[m] >= min_weight:
