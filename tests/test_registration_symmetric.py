@@ -9,6 +9,8 @@ in tests/test_registration_covariance.py and test_registration_model_error.py.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -161,3 +163,27 @@ def test_prepared_stages_give_the_same_bits(semantic, monkeypatch):
     assert np.array_equal(prepared.T, plain.T)
     assert np.array_equal(prepared.covariance, plain.covariance)
     assert prepared.diagnostic.direction_gap == plain.diagnostic.direction_gap
+
+
+def test_reverse_started_before_the_overlap_test_is_stopped_inside_the_target():
+    """The reverse direction starts before the overlap test at the solution (its own thread);
+    where the source then lies inside the target (a part of the cloud registered to it, no
+    voxel grid to tell it earlier) it is stopped and the forward estimate is reported, as
+    without the symmetric option."""
+    from test_registration import corner_scene, random_pose
+
+    from estimation.registration.gicp import source_inside_target
+
+    rng = np.random.default_rng(26)
+    target, _ = corner_scene(rng, 4000)
+    target = target + rng.normal(0, 0.005, target.shape)
+    part = target[target[:, 0] > np.median(target[:, 0])] + rng.normal(0, 0.005, (2000, 3))
+    T_gt = random_pose(rng)
+    source = (part - T_gt[:3, 3]) @ T_gt[:3, :3]
+    cfg = RegistrationConfig(max_correspondence_distance=0.3, voxel_matching=None)
+    sym = Registration(source, target, cfg).run(T_gt)
+    one = Registration(source, target, replace(cfg, symmetric=False)).run(T_gt)
+    assert sym.converged and not sym.diagnostic.symmetric
+    assert source_inside_target(*sym.diagnostic.overlap)
+    assert np.array_equal(sym.T, one.T)
+    assert np.array_equal(sym.covariance, one.covariance)
