@@ -134,10 +134,12 @@ def test_reverse_on_its_thread_gives_the_same_bits_as_inline(semantic, monkeypat
 def test_prepared_stages_give_the_same_bits(semantic, monkeypatch):
     """The final stage's and the reverse direction's neighbour caches and covariances are
     prepared on the second thread while the iterations before them run, from poses before
-    the solution (``PREPARE_STEP``): the caches are exact from any anchor and each row's
-    covariance does not depend on when it is computed, so pose, covariance and direction gap
-    are bit-identical to a run that prepares nothing. (An annealing start off the solution,
-    so that both preparations start from poses that still move.)"""
+    the solution (``PREPARE_STEP``), and so are the source's KD-tree, lattice test and
+    radius, and the matched source rows' covariances: the caches are exact from any anchor
+    and each row's covariance does not depend on when or where it is computed, so pose,
+    covariance and direction gap are bit-identical to a run that prepares nothing. (An
+    annealing start off the solution, so that the preparations start from poses that still
+    move.)"""
     from test_registration import one_hot, random_pose
 
     import estimation.registration.gicp as gicp
@@ -148,14 +150,15 @@ def test_prepared_stages_give_the_same_bits(semantic, monkeypatch):
     cfg = RegistrationConfig(max_correspondence_distance=0.3, initial_correspondence_distance=0.8,
                              decay=0.3 / 0.8, coarse_points=1000)
     init = T_gt @ random_pose(np.random.default_rng(5), 0.1, 0.2)
+    names = ("_prepare_forward", "_prepare_reverse", "_prepare_source", "_prefetch_source")
     calls = []
-    for name in ("_prepare_forward", "_prepare_reverse"):
+    for name in names:
         method = getattr(gicp.Registration, name)
         monkeypatch.setattr(gicp.Registration, name,
                             lambda self, *a, _m=method, _n=name: (calls.append(_n), _m(self, *a)))
     prepared = Registration(source, target, cfg, *probs).run(init)
-    assert sorted(calls) == ["_prepare_forward", "_prepare_reverse"]
-    for name in ("_prepare_forward", "_prepare_reverse"):
+    assert set(calls) == set(names)
+    for name in names:
         monkeypatch.setattr(gicp.Registration, name, lambda self, *a: None)
     plain = Registration(source, target, cfg, *probs).run(init)
     assert prepared.diagnostic.symmetric and plain.diagnostic.symmetric
