@@ -127,8 +127,8 @@ class RegistrationConfig:
     degeneracy_ratio : point-to-plane information below this share of the largest eigenvalue
         marks a direction unconstrained
     cached_neighbours : k of the exact cached-candidate nearest-neighbour search
-        (:class:`NeighbourCache`) used once the correspondence distance has annealed
-        (0 = a KD-tree query every iteration)
+        (:class:`NeighbourCache`) used once the steps have become small (``CACHE_STEP``), and
+        after the iterations (0 = a KD-tree query every time; the same pairs)
     coarse_points : while the correspondence distance is still annealing, only an evenly
         strided subset of about this many source points is matched (a coarse alignment needs
         few points, and queries at large d_max are the most expensive); None = all
@@ -478,11 +478,12 @@ _REVERSE_EXECUTOR = None
 # at 0.15 m, 0.5 m / 5 deg off: 6 of 11 annealing iterations to go from there; at 0.5 m
 # without annealing 6 of 11 final ones)
 PREPARE_STEP = 1e-2
-# annealing iterations match through a neighbour cache (as the final ones always do) once the
-# last step (||Logmap||) is below this: before, most points move beyond their cached
+# the iterations match through a neighbour cache once the last step (||Logmap||) is below
+# this, whatever the correspondence distance: before, most points move beyond their cached
 # candidates' reach, and re-querying them costs more than a plain query (k = 8 neighbours:
 # about 2.4x). KITTI at 0.5 m, 2 m / 20 deg off (25 annealing iterations on all 2.7k points):
-# 86 -> 82 ms a registration; elsewhere within the noise (3 %)
+# 86 -> 82 ms a registration; 0.5 m / 5 deg off without annealing (the first two steps 0.7,
+# 0.2): 50 -> 48 ms
 CACHE_STEP = 1e-1
 # matched source rows whose covariances are computed on the second thread when at least this
 # many are missing (Registration._prefetch_source); fewer are not worth a hand-over
@@ -724,16 +725,17 @@ class Registration:
                                   time.perf_counter() - start, None, self._alpha)
 
     def correspondences(self, T: np.ndarray, d_max: float, rows: np.ndarray | None = None,
-                        cached: bool = False) -> Correspondences:
+                        cached: bool | None = None) -> Correspondences:
         """Return the correspondences (with omega_k) at ``T`` within ``d_max``.
 
         ``rows`` restricts the source to those points (indices stay into the full source).
-        The candidates come from a :class:`NeighbourCache` (the same pairs) once ``d_max`` has
-        annealed, and before that with ``cached`` (run(): the steps have become small).
+        The candidates come from a :class:`NeighbourCache` (the same pairs) with ``cached``
+        (run(): once the steps have become small), by default once ``d_max`` has annealed.
         """
+        if cached is None:
+            cached = d_max <= self.config.max_correspondence_distance
         cache = None
-        if self.config.cached_neighbours and (
-                cached or d_max <= self.config.max_correspondence_distance):
+        if self.config.cached_neighbours and cached:
             # annealed: the source now moves little per iteration (see NeighbourCache)
             if self._cache is None or self._cache.d_max != d_max:
                 self._cache = self._prepared_cache(d_max) or NeighbourCache(
