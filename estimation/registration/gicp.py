@@ -488,6 +488,11 @@ def _single_threaded(fn, *args):
 # at 0.15 m, 0.5 m / 5 deg off: 6 of 11 annealing iterations to go from there; at 0.5 m
 # without annealing 6 of 11 final ones)
 PREPARE_STEP = 1e-2
+# ... the final stage's own preparation from the first annealing step below this instead: the
+# final d_max's rows barely change with the pose, and the preparation of a 10-16k point
+# KITTI cloud (8-neighbour queries and covariances on one thread, 30 ms) then has the time
+# it needs; 3 % less time on KITTI 0.1/0.15 m and the scan than at 1e-2 (3e-1: mixed)
+PREPARE_FORWARD_STEP = 1e-1
 # the iterations match through a neighbour cache once the last step (||Logmap||) is below
 # this, whatever the correspondence distance: before, most points move beyond their cached
 # candidates' reach, and re-querying them costs more than a plain query (k = 8 neighbours:
@@ -1063,7 +1068,7 @@ class Registration:
                 gtsam.Pose3(T_prev).between(gtsam.Pose3(T_new)))) < cfg.tolerance
             stage_iterations += 1
             if annealing:
-                if not prepared_forward and step < PREPARE_STEP:
+                if not prepared_forward and step < PREPARE_FORWARD_STEP:
                     prepared_forward = True
                     self._prepare_forward(T_new, d_final)
                 if (cfg.anneal == "iteration" or step < cfg.tolerance or two_cycle
@@ -1239,10 +1244,10 @@ class Registration:
 
     def _prepare_forward(self, T: np.ndarray, d_max: float) -> None:
         """Start preparing the iterations at the final ``d_max`` from ``T`` (an annealing
-        stage's pose once its steps have become small, ``PREPARE_STEP``) on the second thread,
-        beside this stage's remaining iterations, which leave that core idle: the neighbour
-        cache of the final ``d_max`` and the covariances of the rows matched within it at
-        ``T`` (missing ones are computed when needed, as always).
+        stage's pose once its steps have become small, ``PREPARE_FORWARD_STEP``) on the
+        second thread, beside this stage's remaining iterations, which leave that core idle:
+        the neighbour cache of the final ``d_max`` and the covariances of the rows matched
+        within it at ``T`` (missing ones are computed when needed, as always).
 
         The cache gives the exact nearest neighbours from any anchor (:class:`NeighbourCache`),
         and each row's covariance does not depend on when it is computed, so no result
