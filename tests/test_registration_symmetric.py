@@ -9,6 +9,8 @@ in tests/test_registration_covariance.py and test_registration_model_error.py.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import gtsam
 import numpy as np
 import pytest
@@ -126,3 +128,65 @@ def test_reverse_on_its_thread_gives_the_same_bits_as_inline(semantic, monkeypat
     assert np.array_equal(threaded.T, inline.T)
     assert np.array_equal(threaded.covariance, inline.covariance)
     assert threaded.diagnostic.direction_gap == inline.diagnostic.direction_gap
+
+
+@pytest.mark.parametrize("semantic", [False, True], ids=["gicp", "semantic-icp"])
+def test_prepared_stages_give_the_same_bits(semantic, monkeypatch):
+    """The final stage's and the reverse direction's neighbour caches and covariances are
+    prepared on the second thread while the iterations before them run, from poses before
+    the solution (``PREPARE_STEP``), and so are the source's KD-tree, lattice test and
+    radius, and the matched source rows' covariances: the caches are exact from any anchor
+    and each row's covariance does not depend on when or where it is computed, so pose,
+    covariance and direction gap are bit-identical to a run that prepares nothing. (An
+    annealing start off the solution, so that the preparations start from poses that still
+    move.)"""
+    from test_registration import one_hot, random_pose
+
+    import estimation.registration.gicp as gicp
+
+    source, labels_s, target, labels_t, T_gt = make_pair(25, 3000, 0.005)
+    probs = (one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9)) if semantic else (None,
+                                                                                      None)
+    cfg = RegistrationConfig(max_correspondence_distance=0.3, initial_correspondence_distance=0.8,
+                             decay=0.3 / 0.8, coarse_points=1000)
+    init = T_gt @ random_pose(np.random.default_rng(5), 0.1, 0.2)
+    names = ("_prepare_forward", "_prepare_reverse", "_prepare_source", "_prefetch_source")
+    calls = []
+    for name in names:
+        method = getattr(gicp.Registration, name)
+        monkeypatch.setattr(gicp.Registration, name,
+                            lambda self, *a, _m=method, _n=name: (calls.append(_n), _m(self, *a)))
+    prepared = Registration(source, target, cfg, *probs).run(init)
+    assert set(calls) == set(names)
+    for name in names:
+        monkeypatch.setattr(gicp.Registration, name, lambda self, *a: None)
+    plain = Registration(source, target, cfg, *probs).run(init)
+    assert prepared.diagnostic.symmetric and plain.diagnostic.symmetric
+    assert prepared.iterations == plain.iterations
+    assert np.array_equal(prepared.T, plain.T)
+    assert np.array_equal(prepared.covariance, plain.covariance)
+    assert prepared.diagnostic.direction_gap == plain.diagnostic.direction_gap
+
+
+def test_reverse_started_before_the_overlap_test_is_stopped_inside_the_target():
+    """The reverse direction starts before the overlap test at the solution (its own thread);
+    where the source then lies inside the target (a part of the cloud registered to it, no
+    voxel grid to tell it earlier) it is stopped and the forward estimate is reported, as
+    without the symmetric option."""
+    from test_registration import corner_scene, random_pose
+
+    from estimation.registration.gicp import source_inside_target
+
+    rng = np.random.default_rng(26)
+    target, _ = corner_scene(rng, 4000)
+    target = target + rng.normal(0, 0.005, target.shape)
+    part = target[target[:, 0] > np.median(target[:, 0])] + rng.normal(0, 0.005, (2000, 3))
+    T_gt = random_pose(rng)
+    source = (part - T_gt[:3, 3]) @ T_gt[:3, :3]
+    cfg = RegistrationConfig(max_correspondence_distance=0.3, voxel_matching=None)
+    sym = Registration(source, target, cfg).run(T_gt)
+    one = Registration(source, target, replace(cfg, symmetric=False)).run(T_gt)
+    assert sym.converged and not sym.diagnostic.symmetric
+    assert source_inside_target(*sym.diagnostic.overlap)
+    assert np.array_equal(sym.T, one.T)
+    assert np.array_equal(sym.covariance, one.covariance)

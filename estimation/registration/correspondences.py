@@ -8,6 +8,7 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections import OrderedDict
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -20,10 +21,28 @@ from ..errors import EstimationError
 _kernels = kernels("estimation.registration._kernels")
 
 
+_QUERY_THREADS = threading.local()
+
+
 def _workers(n: int, k: int = 1) -> int:
     """Threads for a KD-tree query of n points, k neighbours: starting threads costs more
-    than small queries gain."""
+    than small queries gain; one on a thread inside :func:`single_threaded_queries`."""
+    if getattr(_QUERY_THREADS, "single", False):
+        return 1
     return -1 if n * (1 + k // 4) >= 5000 else 1
+
+
+@contextmanager
+def single_threaded_queries():
+    """KD-tree queries on this thread use one thread each while inside (for work run beside
+    another thread's: two queries of two threads each on the machine's two cores ran slower
+    than one each; the neighbours do not depend on it)."""
+    previous = getattr(_QUERY_THREADS, "single", False)
+    _QUERY_THREADS.single = True
+    try:
+        yield
+    finally:
+        _QUERY_THREADS.single = previous
 
 
 def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
@@ -97,27 +116,28 @@ class LazyCovariances:
         self.mean_values = None if radius is None else np.empty((len(points), 3))
         self.done = np.zeros(len(points), bool)
         self._rank: np.ndarray | None = None
-        # a symmetric registration's two directions fill the same rows from two threads
-        self._lock = threading.Lock()
 
     def _fill(self, idx: np.ndarray) -> None:
-        if self.done[idx].all():
+        # Two threads may fill rows at once (a symmetric registration's two directions, the
+        # preparation of the next ones: Registration._prepare_forward): no lock is held while
+        # computing, so neither waits for the other's rows; a row both compute gets the same
+        # values twice (a row's neighbours and covariance do not depend on the other rows),
+        # and it is marked done only after its values are written
+        missing = idx[~self.done[idx]]
+        if not len(missing):
             return
-        with self._lock:
-            missing = idx[~self.done[idx]]
-            if len(missing):
-                rows = np.unique(missing)
-                if len(rows) > 64:
-                    # in the KD-tree's leaf order: neighbouring queries walk the same nodes
-                    # (a tenth faster than the cloud's own order, e.g. a voxel filter's hash
-                    # order); each row's neighbours do not depend on the order
-                    rows = rows[np.argsort(self._leaf_rank[rows])]
-                covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree,
-                                             rows, self.radius, self.min_points)
-                self.values[rows] = covs
-                if means is not None:
-                    self.mean_values[rows] = means
-                self.done[rows] = True
+        rows = np.unique(missing)
+        if len(rows) > 64:
+            # in the KD-tree's leaf order: neighbouring queries walk the same nodes (a tenth
+            # faster than the cloud's own order, e.g. a voxel filter's hash order); each
+            # row's neighbours do not depend on the order
+            rows = rows[np.argsort(self._leaf_rank[rows])]
+        covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree, rows,
+                                     self.radius, self.min_points)
+        self.values[rows] = covs
+        if means is not None:
+            self.mean_values[rows] = means
+        self.done[rows] = True
 
     @property
     def _leaf_rank(self) -> np.ndarray:
@@ -127,6 +147,18 @@ class LazyCovariances:
             rank[self.tree.indices] = np.arange(len(self.points))
             self._rank = rank
         return self._rank
+
+    def prefetch(self, idx: np.ndarray, chunk: int = 512,
+                 stop: threading.Event | None = None) -> None:
+        """Compute the missing rows of ``idx`` in chunks of ``chunk`` (in leaf order), from a
+        second thread: rows another thread computes meanwhile are skipped from the next chunk
+        on, and ``stop`` (set) ends it between chunks."""
+        rows = np.unique(idx[~self.done[idx]])
+        rows = rows[np.argsort(self._leaf_rank[rows])]
+        for start in range(0, len(rows), chunk):
+            if stop is not None and stop.is_set():
+                return
+            self._fill(rows[start:start + chunk])
 
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
         self._fill(idx)
