@@ -1198,12 +1198,6 @@ class Registration:
         block = self.cluster_size(T, corr)
         pitch = self.quantisation_pitch
         sandwich = cfg.covariance == "sandwich"
-        # model error: same-voxel pairs whose source point the noise moved across a cell wall
-        crossing = None
-        if sandwich and cfg.crossing_bias and isinstance(self._grid, VoxelGrid):
-            B_crossing, crossing = self.crossing_information(sol)
-            B_model = B_model + B_crossing
-        modelled = pitch is not None or crossing is not None
         # the reverse direction of the symmetric estimate depends only on T: it runs on a
         # second thread while this direction's covariance is computed (its KD-tree queries
         # and kernels release the GIL; the result is the same on one thread). It starts before
@@ -1250,6 +1244,12 @@ class Registration:
             B_model = quantisation_information(
                 sol.normals, tgt, sol.sensitivity, pitch,
                 self.target[corr.target_idx] if cfg.tilted_planes else None)
+        # model error: same-voxel pairs whose source point the noise moved across a cell wall
+        crossing = None
+        if sandwich and cfg.crossing_bias and isinstance(self._grid, VoxelGrid):
+            B_crossing, crossing = self.crossing_information(sol)
+            B_model = B_model + B_crossing
+        modelled = pitch is not None or crossing is not None
         scale = self._scale(src)
         H_normal = self._normal_information(T, src, sol.normals, w)
 
