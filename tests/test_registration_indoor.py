@@ -154,7 +154,7 @@ def test_the_boundary_gate_keeps_an_overlapping_part_off_the_maps_edge(room):
 @pytest.mark.slow
 @pytest.mark.xfail(strict=True, reason="issue 14, open: on voxel-centroid maps of real rooms "
                    "the covariance misses part of the map's own representation error (mean "
-                   "NEES 8.2 here, 7.8 on the benchmark's room, band [4.8, 7.3]; 9.6 and "
+                   "NEES 8.2 here, 7.7 on the benchmark's room, band [4.8, 7.3]; 9.6 and "
                    "11.8 before same-voxel matching and the crossing term; "
                    "docs/registration.md)")
 def test_covariance_is_consistent_on_a_real_room_against_its_voxel_map(forward):

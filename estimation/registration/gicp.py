@@ -328,7 +328,7 @@ class CovarianceDiagnostic:
         map's representation error (where its grid cuts the surfaces) biases the fit
         coherently over the whole overlap, which no residual statistic showed: measured mean
         NEES 11.5 on a real Kinect room and 414 on ICL-NUIM's office with the nearest
-        centroid, 9.2 and 32 with ``voxel_matching``, 7.8 and 8.7 (30 trials, band
+        centroid, 9.2 and 32 with ``voxel_matching``, 7.7 and 8.6 (30 trials, band
         [4.8, 7.3]) with ``crossing_bias`` (docs/registration.md, "Real rooms", "Where the
         room gap comes from", "Cell crossings")
     model_covariance : (6, 6) the quantisation part of the reported covariance (zeros
