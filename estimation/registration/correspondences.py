@@ -496,7 +496,7 @@ class SemanticIndex:
 
     def __init__(self, points: np.ndarray, probs: np.ndarray):
         points = np.asarray(points, dtype=float)
-        probs = np.asarray(probs, dtype=float)
+        probs = np.ascontiguousarray(probs, dtype=float)  # (the E-step's kernels read it)
         if probs.ndim != 2 or len(probs) != len(points):
             raise EstimationError(
                 f"target probs must be (N, C) with N={len(points)}, got {probs.shape}")
@@ -510,6 +510,8 @@ class SemanticIndex:
             rows = np.nonzero(labels == c)[0]
             self.members[int(c)] = rows
             self.trees[int(c)] = cKDTree(points[rows])
+        # the classes that have target points, in the trees' order (the candidates' order)
+        self.classes = np.fromiter(self.trees, dtype=np.int64, count=len(self.trees))
 
     @property
     def n_classes(self) -> int:
@@ -600,10 +602,9 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     # the candidate list: the nearest neighbours, then each rank's classes in turn (a class
     # candidate that is the point's nearest neighbour is not counted twice); eq. (5): the
     # label agreement p(c|x_s) p(c|x_t) (with label noise) ...
-    classes = np.fromiter(index.trees, dtype=np.int64, count=len(index.trees))
     src, tgt, dist, prior = _kernels.semantic_candidates(
-        nn, nn_dist, nn_prior, order, rank_target, rank_dist, classes, source_probs,
-        np.ascontiguousarray(index.probs, dtype=float), float(label_noise))
+        nn, nn_dist, nn_prior, order, rank_target, rank_dist, index.classes, source_probs,
+        index.probs, float(label_noise))
     # ... times the residual likelihood under T_old
     omega = prior * np.exp(-0.5 * (dist / residual_sigma) ** 2)
     src, tgt, omega, dist = _kernels.normalise_keep(src, tgt, omega, dist, n, bool(posterior),

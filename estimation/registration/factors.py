@@ -69,15 +69,20 @@ def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> 
                               np.ascontiguousarray(R, dtype=float))
 
 
+def _rows(rows: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(rows, dtype=np.int64)
+
+
+def _f8(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=float)
+
+
 def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: np.ndarray,
                    source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
     """:func:`whitening` of ``cov_target[target_rows]`` and ``cov_source[source_rows]``,
     without gathering the (M, 3, 3) stacks first (the same numbers)."""
-    return _kernels.whitening_rows(np.ascontiguousarray(cov_target, dtype=float),
-                                   np.ascontiguousarray(target_rows, dtype=np.int64),
-                                   np.ascontiguousarray(cov_source, dtype=float),
-                                   np.ascontiguousarray(source_rows, dtype=np.int64),
-                                   np.ascontiguousarray(R, dtype=float))
+    return _kernels.whitening_rows(_f8(cov_target), _rows(target_rows), _f8(cov_source),
+                                   _rows(source_rows), _f8(R))
 
 
 def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
@@ -95,14 +100,6 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
                                    np.ascontiguousarray(target, dtype=float),
                                    np.ascontiguousarray(Ut, dtype=float), sw, bool(jacobians))
     return GicpTerms(rw, J if jacobians else None, e)
-
-
-def _rows(rows: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(rows, dtype=np.int64)
-
-
-def _f8(a: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(a, dtype=float)
 
 
 def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,

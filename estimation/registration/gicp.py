@@ -22,6 +22,7 @@ from dataclasses import dataclass, field, replace
 import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.special import ndtr  # (loaded with scipy.spatial already)
 
 from ..errors import EstimationError
 from .correspondences import (
@@ -521,7 +522,9 @@ PREFETCH_ROWS = 256
 
 
 def _reverse_executor():
-    """One worker thread for the reverse direction of symmetric registrations."""
+    """The second thread: the reverse direction of symmetric registrations, and what is
+    prepared beside the iterations (the source's tree, the final stage's caches and
+    covariances, prefetched source covariances)."""
     global _REVERSE_EXECUTOR
     if _REVERSE_EXECUTOR is None:
         from concurrent.futures import ThreadPoolExecutor
@@ -1778,8 +1781,6 @@ def crossing_bias(sigma: float, tau: np.ndarray, pitch: float, phase: np.ndarray
     residuals sum to zero; with it, the cells' shares of the source differ from their shares
     of the layer. The mean residual is ``-sum_k P(s in k) m_k`` (the layer's mean is 0).
     """
-    from scipy.special import ndtr  # (Phi; only where same-voxel matching ran)
-
     tau = np.asarray(tau, dtype=float)[..., None]
     phase = np.asarray(phase, dtype=float)[..., None]
     reach = int(np.ceil(4.0 * (np.max(tau) + sigma) / pitch)) + 1
