@@ -141,6 +141,37 @@ def test_neighbour_cache_is_exact(rng, d_max):
         np.testing.assert_array_equal(idx[found], ref_idx[found])
 
 
+@pytest.mark.parametrize("d_max", [0.03, 0.3])
+def test_class_neighbour_cache_is_exact(rng, d_max):
+    """One cache over every class: each row's nearest target point of its own class, as its
+    class's tree says, through small and large motions; a class with one target point (all
+    its points are candidates) and a class without any (never a candidate) included."""
+    from estimation.registration.correspondences import ClassNeighbourCache
+
+    c = 6
+    target = rng.uniform(0, 1, (2000, 3))
+    labels = rng.integers(0, 4, 2000)
+    labels[7] = 4  # class 4: one point; class 5: none
+    index = SemanticIndex(target, np.eye(c)[labels])
+    classes = rng.integers(0, c, 600)
+    cache = ClassNeighbourCache(index, d_max, classes)
+    points = np.vstack([rng.uniform(0, 1, (550, 3)), rng.uniform(1.2, 2, (50, 3))])
+    for step in (0.0, 1e-3, 1e-2, 0.05, 0.3, 1e-4):
+        points = points + rng.normal(0, step, points.shape)
+        dist, idx = cache.query(points)
+        for k in range(c):
+            rows = np.flatnonzero(classes == k)
+            if k not in index.trees:
+                assert np.all(np.isinf(dist[rows])) and np.all(idx[rows] == -1)
+                continue
+            ref_dist, ref_j = index.trees[k].query(points[rows], distance_upper_bound=d_max)
+            found = np.isfinite(ref_dist)
+            np.testing.assert_array_equal(np.isfinite(dist[rows]), found)
+            np.testing.assert_allclose(dist[rows][found], ref_dist[found], rtol=1e-12)
+            np.testing.assert_array_equal(idx[rows][found], index.members[k][ref_j[found]])
+            assert np.all(idx[rows][~found] == -1)
+
+
 def test_lazy_covariances_equal_the_full_computation(rng):
     from scipy.spatial import cKDTree
 
@@ -576,7 +607,7 @@ def test_registration_with_gtsam_robust_factors_matches_batched(semantic):
 
 
 def test_semantic_candidate_caches_keep_the_answer():
-    # the per-class NeighbourCaches (and the geometric one) are exact: same path, same pose
+    # the class candidates' cache (and the geometric one) are exact: same path, same pose
     source, labels_s, target, labels_t, T_gt = make_pair(9, 3000, 0.005)
     probs = one_hot(labels_s, acc=0.8), one_hot(labels_t, acc=0.8)
     runs = [Registration(source, target, RegistrationConfig(

@@ -419,15 +419,35 @@ def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target
         if nearest[i] >= 0:
             src[m], tgt[m], dist[m], prior[m] = i, nearest[i], nearest_dist[i], nearest_prior[i]
             m += 1
+    # each rank's candidates grouped by class (a counting sort, each class in row order),
+    # then written class by class in the order of ``classes``
+    n_cls = source_probs.shape[1]
+    starts = np.empty(n_cls + 1, dtype=np.int64)
+    fill = np.empty(n_cls, dtype=np.int64)
+    grouped = np.empty(n, dtype=np.int64)
     for rank in range(top):
+        starts[:] = 0
+        for i in range(n):
+            t = rank_target[rank, i]
+            if t >= 0 and t != nearest[i]:
+                starts[order[i, rank] + 1] += 1
+        for g in range(n_cls):
+            starts[g + 1] += starts[g]
+        fill[:] = starts[:n_cls]
+        for i in range(n):
+            t = rank_target[rank, i]
+            if t >= 0 and t != nearest[i]:
+                c = order[i, rank]
+                grouped[fill[c]] = i
+                fill[c] += 1
         for k in range(classes.shape[0]):
             c = classes[k]
-            for i in range(n):
+            for p in range(starts[c], starts[c + 1]):
+                i = grouped[p]
                 t = rank_target[rank, i]
-                if t >= 0 and order[i, rank] == c and t != nearest[i]:
-                    src[m], tgt[m], dist[m] = i, t, rank_dist[rank, i]
-                    prior[m] = source_probs[i, c] * target_probs[t, c]
-                    m += 1
+                src[m], tgt[m], dist[m] = i, t, rank_dist[rank, i]
+                prior[m] = source_probs[i, c] * target_probs[t, c]
+                m += 1
     if label_noise > 0.0:
         keep = 1.0 - label_noise
         floor = label_noise / source_probs.shape[1]

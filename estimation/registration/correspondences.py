@@ -6,6 +6,7 @@ small dataclasses; KD-trees are :class:`scipy.spatial.cKDTree`.
 from __future__ import annotations
 
 import hashlib
+import os
 import threading
 from collections import OrderedDict
 from contextlib import contextmanager
@@ -24,25 +25,38 @@ _kernels = kernels("estimation.registration._kernels")
 _QUERY_THREADS = threading.local()
 
 
+def _cores() -> int:
+    """The CPU cores this process may run on."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # (not on every platform)
+        return max(os.cpu_count() or 1, 1)
+
+
 def _workers(n: int, k: int = 1) -> int:
     """Threads for a KD-tree query of n points, k neighbours: starting threads costs more
-    than small queries gain; one on a thread inside :func:`single_threaded_queries`."""
-    if getattr(_QUERY_THREADS, "single", False):
+    than small queries gain; half the cores (one on two) inside :func:`queries_beside`."""
+    if n * (1 + k // 4) < 5000:
         return 1
-    return -1 if n * (1 + k // 4) >= 5000 else 1
+    return getattr(_QUERY_THREADS, "workers", -1)
 
 
 @contextmanager
-def single_threaded_queries():
-    """KD-tree queries on this thread use one thread each while inside (for work run beside
-    another thread's: two queries of two threads each on the machine's two cores ran slower
-    than one each; the neighbours do not depend on it)."""
-    previous = getattr(_QUERY_THREADS, "single", False)
-    _QUERY_THREADS.single = True
+def queries_beside():
+    """KD-tree queries on this thread use half the cores (one thread each on two cores)
+    while inside: for work run beside another thread's (a registration's two threads).
+    Measured on two cores (in-process A/B, bit-identical results): a query on two threads
+    beside the other thread's work was slower than on one; one each took KITTI at
+    0.1-0.25 m 7-8 % less time a registration and the rooms 1.5-5 %."""
+    previous = getattr(_QUERY_THREADS, "workers", None)
+    _QUERY_THREADS.workers = max(_cores() // 2, 1)
     try:
         yield
     finally:
-        _QUERY_THREADS.single = previous
+        if previous is None:
+            del _QUERY_THREADS.workers
+        else:
+            _QUERY_THREADS.workers = previous
 
 
 def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
@@ -485,6 +499,70 @@ class NeighbourCache:
         return dist, idx
 
 
+class ClassNeighbourCache:
+    """:class:`NeighbourCache` for class-conditioned queries: each row searches the tree of
+    its own class (``classes`` (n,), fixed for the cache's life), all rows in one pass.
+
+    The candidates are kept as rows of the whole target (the classes' members), so one
+    candidate scan serves every class; only rows whose candidates can have missed the
+    answer go back to their class's tree. Exact, like :class:`NeighbourCache`: it returns
+    the nearest target point of the row's class within ``d_max`` (a per-class cache each
+    cost a call per class and iteration: 24 classes made the E-step 3x dearer).
+    """
+
+    def __init__(self, index: SemanticIndex, d_max: float, classes: np.ndarray,
+                 k: int = 8):
+        self.index = index
+        self.d_max = float(d_max)
+        self.k = int(max(k, 2))
+        self.classes = np.ascontiguousarray(classes, dtype=np.int64)
+        self.anchor: np.ndarray | None = None
+        self.candidates = np.full((len(self.classes), self.k), len(index.points), np.int64)
+        self.reach = np.full(len(self.classes), np.inf)
+
+    def _refresh(self, points: np.ndarray, rows: np.ndarray) -> None:
+        index, radius = self.index, 2.0 * self.d_max
+        starts, grouped = _kernels.group_rows(self.classes[rows], np.ones(len(rows), bool),
+                                              index.n_classes)
+        for c in np.nonzero(np.diff(starts))[0]:
+            tree = index.trees.get(int(c))
+            sel = rows[grouped[starts[c]:starts[c + 1]]]
+            self.anchor[sel] = points[sel]
+            if tree is None:  # no target point of this class: never a candidate
+                continue
+            k = min(self.k, tree.n)
+            dist, idx = tree.query(points[sel], k=k, distance_upper_bound=radius,
+                                   workers=_workers(len(sel), k))
+            dist, idx = dist.reshape(len(sel), k), idx.reshape(len(sel), k)
+            found = idx < tree.n
+            self.candidates[sel, :k] = np.where(found, index.members[int(c)][
+                np.where(found, idx, 0)], len(index.points))
+            dk = np.minimum(dist[:, -1], radius)
+            reach = np.maximum(dk - self.d_max, 0.5 * (dk - dist[:, 0]))
+            if k == tree.n:  # where every point of the class is a candidate: never stale
+                reach[found.all(axis=1)] = np.inf
+            self.reach[sel] = reach
+
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return (distance, target row) of each row's nearest target point of its class;
+        inf / -1 beyond d_max or where the class has no target point."""
+        points = np.ascontiguousarray(points, dtype=float)
+        if self.anchor is None:
+            self.anchor = np.empty_like(points)
+            self._refresh(points, np.arange(len(points)))
+        target = self.index.points
+        dist, idx, stale = _kernels.cached_nearest(points, self.anchor, self.reach,
+                                                   self.candidates, target, self.d_max)
+        stale = np.nonzero(stale)[0]
+        if len(stale):
+            self._refresh(points, stale)
+            d, i, _ = _kernels.cached_nearest(points[stale], self.anchor[stale],
+                                              self.reach[stale], self.candidates[stale],
+                                              target, self.d_max)
+            dist[stale], idx[stale] = d, i
+        return dist, idx
+
+
 class SemanticIndex:
     """Per-class KD-trees over the target points, for class-conditioned correspondences.
 
@@ -495,7 +573,7 @@ class SemanticIndex:
     """
 
     def __init__(self, points: np.ndarray, probs: np.ndarray):
-        points = np.asarray(points, dtype=float)
+        points = np.ascontiguousarray(points, dtype=float)  # (candidate scans read it)
         probs = np.ascontiguousarray(probs, dtype=float)  # (the E-step's kernels read it)
         if probs.ndim != 2 or len(probs) != len(points):
             raise EstimationError(
@@ -518,6 +596,13 @@ class SemanticIndex:
         return self.probs.shape[1]
 
 
+def top_class_order(probs: np.ndarray, top: int) -> np.ndarray:
+    """Return each row's ``top`` most probable classes (n, top), best first (ties: the lower
+    class): the order in which :func:`semantic_correspondences` searches the classes."""
+    return _kernels.top_classes(np.ascontiguousarray(probs, dtype=float),
+                                int(min(top, probs.shape[1])))
+
+
 def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndarray,
                              index: SemanticIndex, d_max: float,
                              residual_sigma: float, top_classes: int = 2,
@@ -526,7 +611,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                              nearest: tuple[np.ndarray, np.ndarray] | None = None,
                              posterior: bool = False,
                              caches: dict | None = None,
-                             label_noise: float = 0.0) -> Correspondences:
+                             label_noise: float = 0.0,
+                             order: np.ndarray | None = None) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
     Candidates: for each source point and each of its ``top_classes`` most probable classes c,
@@ -556,8 +642,10 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     so a point whose one-hot label is wrong still votes for its geometric nearest neighbour
     instead of putting all its posterior weight on a far candidate of its (wrong) class.
 
+    ``order``: :func:`top_class_order` of ``source_probs``, when the caller keeps it.
+
     ``caches``: a dict (kept by the caller for one ``d_max`` and one set of source points)
-    in which a :class:`NeighbourCache` per class tree is kept, so that repeated calls while
+    in which a :class:`ClassNeighbourCache` per rank is kept, so that repeated calls while
     the source moves little return the same candidates from cached ones.
     """
     n, c_src = source_probs.shape
@@ -566,7 +654,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
             f"source has {c_src} classes but the target has {index.n_classes}")
     top = min(int(top_classes), c_src)
     source_probs = np.ascontiguousarray(source_probs, dtype=float)
-    order = _kernels.top_classes(source_probs, top)
+    if order is None or order.shape != (n, top):
+        order = top_class_order(source_probs, top)
     nn = np.full(n, -1, dtype=np.int64)
     nn_dist = np.zeros(n)
     nn_prior = np.zeros(n)
@@ -584,18 +673,24 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         cls_of_point = np.ascontiguousarray(order[:, rank])
         searched = np.ones(n, bool) if rank == 0 else \
             source_probs[np.arange(n), cls_of_point] >= min_class_prob
+        if caches is not None:
+            rows = np.nonzero(searched)[0]
+            cache = caches.get(rank)
+            if cache is None or not np.array_equal(cache.classes, cls_of_point[rows]):
+                # (another set of source rows: a cache holds one row's class for its life)
+                cache = caches[rank] = ClassNeighbourCache(index, d_max, cls_of_point[rows])
+            dist, j = cache.query(source_in_target[rows])
+            ok = np.isfinite(dist)
+            rank_target[rank, rows[ok]] = j[ok]
+            rank_dist[rank, rows[ok]] = dist[ok]
+            continue
         starts, grouped = _kernels.group_rows(cls_of_point, searched, c_src)
         for c, tree in index.trees.items():
             rows = grouped[starts[c]:starts[c + 1]]
             if len(rows) == 0:
                 continue
-            if caches is not None and tree.n >= 2:
-                if (rank, c) not in caches:
-                    caches[(rank, c)] = NeighbourCache(tree, d_max)
-                dist, j = caches[(rank, c)].query(source_in_target[rows])
-            else:
-                dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
-                                     workers=_workers(len(rows)))
+            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
+                                 workers=_workers(len(rows)))
             ok = np.isfinite(dist)
             rank_target[rank, rows[ok]] = index.members[c][j[ok]]
             rank_dist[rank, rows[ok]] = dist[ok]

@@ -36,8 +36,9 @@ from .correspondences import (
     local_means,
     nearest_correspondences,
     neighbourhoods,
+    queries_beside,
     semantic_correspondences,
-    single_threaded_queries,
+    top_class_order,
     transform_points,
     voxel_grid,
 )
@@ -488,12 +489,11 @@ def _rows_of(cov: np.ndarray | LazyCovariances, rows: np.ndarray) -> np.ndarray:
 _REVERSE_EXECUTOR = None
 
 
-def _single_threaded(fn, *args):
-    """``fn(*args)`` with this thread's KD-tree queries on one thread each (the reverse
-    direction, beside the forward's covariance: KITTI at 0.15 and 0.5 m and the scan split,
-    2 % less time than with two threads a query; the forward's queries on one thread too
-    gained nothing more)."""
-    with single_threaded_queries():
+def _beside(fn, *args):
+    """``fn(*args)`` with this thread's KD-tree queries on half the cores (the reverse
+    direction, beside the forward's iterations: KITTI at 0.15 and 0.5 m and the scan split,
+    2 % less time than with two threads a query on two cores)."""
+    with queries_beside():
         return fn(*args)
 
 # the final stage and the reverse direction are prepared on the second thread
@@ -570,6 +570,8 @@ class Registration:
         self._tree: cKDTree | None = None
         self._source_tree: cKDTree | None = None
         self._index: SemanticIndex | None = None
+        # Semantic-ICP: the source's top classes and argmax labels (made at the first E-step)
+        self._source_classes: tuple[np.ndarray, np.ndarray] | None = None
         self._block: float | None = None
         self._boundary_radius: float | None = None
         self._source_block: float | None = None
@@ -650,7 +652,7 @@ class Registration:
 
         def prepare() -> None:
             try:
-                with single_threaded_queries():
+                with queries_beside():
                     tree = cKDTree(self.source)
                     tree_ready.set_result(tree)
                     if self._source_pitch == "unset":
@@ -777,7 +779,7 @@ class Registration:
         if rows is not None:
             moved = transform_points(T, self.source[rows])
             if self.semantic:
-                corr = self._semantic(moved, self.source_probs[rows], d_max, cache)
+                corr = self._semantic(moved, self.source_probs[rows], d_max, cache, rows)
             else:
                 corr = nearest_correspondences(moved, self.target_tree, d_max, cache)
             corr = replace(corr, source_idx=rows[corr.source_idx])
@@ -973,9 +975,17 @@ class Registration:
         return self._class_cache
 
     def _semantic(self, moved: np.ndarray, probs: np.ndarray, d_max: float,
-                  cache: NeighbourCache | None) -> Correspondences:
-        """Return Semantic-ICP's candidates and E-step weights (and update the EM sigma)."""
+                  cache: NeighbourCache | None, rows: np.ndarray | None = None
+                  ) -> Correspondences:
+        """Return Semantic-ICP's candidates and E-step weights (and update the EM sigma) of
+        the source ``rows`` (all: None), ``moved`` and ``probs`` theirs."""
         cfg = self.config
+        if self._source_classes is None:  # (the source's labels do not change)
+            self._source_classes = (top_class_order(self.source_probs, cfg.top_classes),
+                                    self.source_probs.argmax(axis=1))
+        order, labels = self._source_classes
+        if rows is not None:
+            order, labels = order[rows], labels[rows]
         # the posterior E-step is for the final d_max; while d_max is still annealing the
         # paper's scores let the labels pull the alignment in (wide offsets: 100 % vs 99 %)
         posterior = (cfg.semantic_estep == "posterior"
@@ -986,13 +996,13 @@ class Registration:
             nearest = cache.query(moved) if cache is not None else self.target_tree.query(
                 moved, k=1, distance_upper_bound=d_max, workers=_workers(len(moved)))
             if cfg.label_noise == "auto":
-                label_noise = self._label_noise(probs, nearest, d_max)
+                label_noise = self._label_noise(labels, nearest, d_max)
             else:
                 label_noise = float(cfg.label_noise)
         corr = semantic_correspondences(
             moved, probs, self.semantic_index, d_max, residual_sigma=max(sigma, 1e-6),
             top_classes=cfg.top_classes, nearest=nearest, posterior=posterior,
-            caches=self._class_caches(cache), label_noise=label_noise)
+            caches=self._class_caches(cache), label_noise=label_noise, order=order)
         if posterior and len(corr):
             # M-step of the isotropic residual variance: sigma^2 = sum w d^2 / (3 sum w)
             w = corr.weights
@@ -1000,16 +1010,16 @@ class Registration:
                                     1e-4))
         return corr
 
-    def _label_noise(self, probs: np.ndarray, nearest: tuple[np.ndarray, np.ndarray],
+    def _label_noise(self, labels: np.ndarray, nearest: tuple[np.ndarray, np.ndarray],
                      d_max: float) -> float:
-        """The share of source points whose label (argmax) differs from their geometric
+        """The share of source points whose ``labels`` (argmax) differ from their geometric
         nearest neighbour's, among those with one within ``d_max``: the E-step's label noise
         (``RegistrationConfig.label_noise="auto"``), clipped to [MIN_LABEL_NOISE, 0.5]."""
         dist, j = nearest
         ok = dist <= d_max
         if not ok.any():
             return 0.5
-        differ = np.mean(probs[ok].argmax(axis=1) != self.semantic_index.labels[j[ok]])
+        differ = np.mean(labels[ok] != self.semantic_index.labels[j[ok]])
         return float(np.clip(differ, MIN_LABEL_NOISE, 0.5))
 
     @property
@@ -1049,6 +1059,12 @@ class Registration:
 
     def run(self, init: np.ndarray | gtsam.Pose3 | None = None) -> RegistrationResult:
         """Return the registration result starting from ``init`` (T_target_source)."""
+        # the second thread works beside this one throughout (preparations, the reverse):
+        # this thread's queries leave it its core (:func:`.correspondences.queries_beside`)
+        with queries_beside():
+            return self._run(init)
+
+    def _run(self, init: np.ndarray | gtsam.Pose3 | None) -> RegistrationResult:
         cfg = self.config
         start = time.perf_counter()
         T = _as_transform(init)
@@ -1214,7 +1230,7 @@ class Registration:
         def start_reverse():
             # (the reverse registration takes its state, e.g. Semantic-ICP's sigma, now, on
             # this thread: the re-matched bread below changes it while it runs)
-            return _reverse_executor().submit(_single_threaded, self.reverse_terms, T, d_max,
+            return _reverse_executor().submit(_beside, self.reverse_terms, T, d_max,
                                               block, self._reverse_registration(),
                                               self._reverse_cache, self._stop)
 
@@ -1363,7 +1379,7 @@ class Registration:
 
         def prepare() -> None:
             try:
-                with single_threaded_queries():  # this thread's queries beside the other's
+                with queries_beside():  # this thread's queries beside the other's
                     dist, nearest = cache.query(moved)
                     ready.set_result(cache)
                     ok = np.isfinite(dist)
