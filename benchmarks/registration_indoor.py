@@ -14,7 +14,10 @@ labels
     The shared data have no semantic labels, so each room point gets a geometric class as a
     stand-in: the axis its surface normal (Open3D, 5 cm radius) is nearest to (three classes)
     or "other" where no axis is within about 32 deg. Spatially coherent like real classes;
-    they are not object classes.
+    they are not object classes. ``--classes N`` (more than 4) stands in for object labels,
+    which come in dozens: each geometric class within each 0.6 m block is a segment, and
+    the segments are spread over N classes by a hash of their block (a class recurs in
+    several places, as chairs do); Semantic-ICP then searches N class trees.
 map (target)
     The room as a 3 cm voxel map: ``centroids`` (the mean point of each voxel, as Open3D's
     ``voxel_down_sample`` and ``SemanticCloud.fuse_voxels``) or ``centres`` (the voxel
@@ -59,6 +62,7 @@ Usage::
 
     python benchmarks/registration_indoor.py                         # tum and icl, 30 trials
     python benchmarks/registration_indoor.py --rooms tum --maps centroids --trials 10
+    python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --classes 24
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --setting part
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --methods \
         gicp-se3,open3d-gicp --trials 10 --phase-covariance 10
@@ -88,7 +92,8 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd"
 ROOMS = {"tum": ("tum_fr1_rpy", (517.3, 516.5, 318.6, 255.3),
                  (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
          "icl": ("icl_of_kt0", (481.2, 480.0, 319.5, 239.5), None)}
-N_CLASSES = 4
+N_GEOMETRIC = 4  # the rooms' geometric classes (three axes and "other")
+N_CLASSES = N_GEOMETRIC  # the classes of the run (--classes)
 PITCH = 0.03
 METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "open3d-gicp")
 PART_OVERLAP = 1.0  # m: width of the slab two parts share (setting "part")
@@ -123,6 +128,17 @@ def room_cloud(name: str, step: int = 5, data: Path = DATA) -> tuple[np.ndarray,
     labels = np.argmax(normals, axis=1)
     labels[normals.max(axis=1) < 0.85] = 3
     return points, labels.astype(np.int64)
+
+
+def object_labels(points: np.ndarray, labels: np.ndarray, n_classes: int,
+                  block: float = 0.6) -> np.ndarray:
+    """Return ``n_classes`` spatially coherent labels made from the geometric ``labels``
+    (4 classes): each class within each ``block`` (m) cube is a segment, the segments
+    spread over the classes by a hash of their cube."""
+    cube = np.floor(points / block).astype(np.int64)
+    spread = max(n_classes // N_GEOMETRIC, 1)
+    segment = (cube[:, 0] * 73856093 ^ cube[:, 1] * 19349663 ^ cube[:, 2] * 83492791) % spread
+    return ((segment * N_GEOMETRIC + labels) % n_classes).astype(np.int64)
 
 
 def voxel_map(points: np.ndarray, labels: np.ndarray, kind: str, pitch: float = PITCH
@@ -307,11 +323,18 @@ def main(argv=None) -> int:
     parser.add_argument("--setting", default="half", choices=("half", "part"),
                         help="half: a half against the room's map; part: a part against the "
                         "map of an overlapping part")
+    parser.add_argument("--classes", type=int, default=N_GEOMETRIC,
+                        help="semantic classes: 4 = the geometric ones; more stand in for "
+                        "object labels (each 0.6 m block's segments hashed over them)")
     parser.add_argument("--json", metavar="PATH", help="also write every trial's numbers")
     parser.add_argument("--phase-covariance", type=int, default=0, metavar="K",
                         help="also the NEES with the spread over K grid phases of the room's "
                         "own points added (GICP-SE(3), half setting; a diagnosis)")
     args = parser.parse_args(argv)
+    if args.classes < N_GEOMETRIC:
+        parser.error(f"--classes must be at least {N_GEOMETRIC}")
+    global N_CLASSES
+    N_CLASSES = args.classes
     if args.phase_covariance == 1 or args.phase_covariance < 0:
         parser.error("--phase-covariance needs at least 2 phases (or 0: off)")
     methods = args.methods.split(",")
@@ -321,6 +344,8 @@ def main(argv=None) -> int:
     print(f"load average at start {os.getloadavg()[0]:.2f}")
     for name in args.rooms.split(","):
         points, labels = room_cloud(name, args.step)
+        if N_CLASSES > N_GEOMETRIC:
+            labels = object_labels(points, labels, N_CLASSES)
         print(f"{name} room: {len(points)} points, classes {np.bincount(labels).tolist()}")
         # compile/load the numba kernels outside the timings
         warm = labelled(points[::50], labels[::50])

@@ -227,10 +227,16 @@ def _summary(out: dict) -> str:
                  f"r_err={out['r_err_rad']:.4f} rad")
     diagnostic = out.get("covariance_diagnostic")
     if diagnostic and not diagnostic["covariance_trusted"]:
-        from estimation.registration.gicp import source_inside_target
+        from estimation.registration.gicp import RegistrationConfig, source_inside_target
 
         overlap = diagnostic.get("overlap")
-        if overlap is not None and source_inside_target(*overlap):
+        gap = diagnostic.get("direction_gap")
+        if not out["converged"]:
+            text += "; covariance not trusted (the estimate did not converge)"
+        elif gap is not None and gap > RegistrationConfig.trust_gap:
+            text += (f"; covariance not trusted (the two directions found different "
+                     f"solutions: gap {gap:.0f}, another basin?)")
+        elif overlap is not None and source_inside_target(*overlap):
             text += ("; covariance not trusted (the source lies inside a map: the map's "
                      "representation error is only partly in it)")
         else:

@@ -86,5 +86,10 @@ def test_the_summary_says_why_the_covariance_is_not_trusted():
     assert "residuals correlated beyond its blocks: ratio 5.20" in _summary(out)
     out["covariance_diagnostic"]["overlap"] = None
     assert "ratio 5.20" in _summary(out)
+    out["covariance_diagnostic"]["direction_gap"] = 337.0
+    assert "the two directions found different solutions: gap 337" in _summary(out)
+    out["converged"] = False
+    assert "the estimate did not converge" in _summary(out)
+    out["converged"] = True
     out["covariance_diagnostic"]["covariance_trusted"] = True
     assert "not trusted" not in _summary(out)
