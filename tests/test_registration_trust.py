@@ -3,8 +3,9 @@
 A run that did not converge, or whose two directions found different solutions (one of them
 in another basin), has no covariance worth reporting as trusted, whatever the residual
 statistic says. Measured on ICL-NUIM's office against its 3 cm centroid map (the test's room,
-every 10th frame; seeds 0-29 from the benchmark's small offsets): seeds 5 and 21 stop 48 /
-25 mm off without converging, seeds 19 and 22 converge 19 / 18 cm off in another basin,
+every 10th frame; seeds 0-29 from the benchmark's small offsets): seeds 5 and 21 stopped 48 /
+25 mm off without converging (at 60 final iterations), seeds 19 and 22 converge 19 / 18 cm
+off in another basin,
 where the overlap rule takes the midpoint and the two directions differ by a gap of
 337 / 311 (chi-square with 6 dof under the noise alone; `RegistrationConfig.trust_gap`
 38.3). Before these two rules all four were flagged trusted.
@@ -54,11 +55,16 @@ def test_two_directions_in_different_basins_are_not_trusted(office, seed):
 
 @pytest.mark.parametrize("seed", [5, 21])
 def test_a_run_that_did_not_converge_is_not_trusted(office, seed):
+    # these two starts crawl along the room (the cost falls a little every iteration): cut
+    # at 60 final iterations (the default until the ninth round) they end 25-48 mm off; with
+    # the default 150 they converge (the slow slide is not a failure, only a long one)
     points, labels, target = office
     source, T_gt, init, d0 = _start(points, labels, seed)
-    result, _ = register_ours(source, target, init, (d0, D_FINAL))
-    assert not result.converged and pose_error(result.T, T_gt).t_err_m > 0.01
-    assert result.diagnostic is not None and not result.diagnostic.trusted
+    cut, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=60)
+    assert not cut.converged and pose_error(cut.T, T_gt).t_err_m > 0.01
+    assert cut.diagnostic is not None and not cut.diagnostic.trusted
+    done, _ = register_ours(source, target, init, (d0, D_FINAL))
+    assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
 
 
 def test_an_unconverged_iid_pair_is_not_trusted_and_the_converged_one_is():

@@ -97,6 +97,7 @@ class RegistrationConfig:
         1.12x with alpha 2; docs/registration.md)
     k_neighbours, epsilon : per-point covariance estimation (eigenvalues -> (epsilon, 1, 1))
     max_iterations : outer correspondence/EM iterations at the final correspondence distance
+        (150: a start that slides slowly along a room needs 90-130; docs/registration.md)
         (the stages before it are capped by ``stage_iterations`` each, so a multi-stage
         schedule cannot starve the stage whose convergence is tested)
     inner_iterations : GTSAM optimiser iterations per outer iteration
@@ -232,7 +233,7 @@ class RegistrationConfig:
     cauchy_scale: str = "auto"
     k_neighbours: int = 20
     epsilon: float = 1e-3
-    max_iterations: int = 60
+    max_iterations: int = 150
     inner_iterations: int = 1
     factors: str = "batched"
     optimizer: str = "gn"
