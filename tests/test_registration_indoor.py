@@ -217,3 +217,24 @@ def test_label_noise_is_checked():
     for bad in (-0.1, 1.0, "often"):
         with pytest.raises(EstimationError, match="label_noise"):
             RegistrationConfig(label_noise=bad)
+
+
+def test_object_labels_split_the_geometric_classes_into_coherent_segments():
+    """``--classes N`` (stand-in for object labels): every class used, each segment (one
+    geometric class in one 0.6 m cube) one label, the geometric class recoverable mod 4."""
+    from benchmarks.registration_indoor import N_GEOMETRIC, main, object_labels
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0.0, 6.0, (20000, 3))
+    labels = rng.integers(0, N_GEOMETRIC, len(points))
+    out = object_labels(points, labels, 24)
+    assert out.min() >= 0 and out.max() < 24 and len(np.unique(out)) == 24
+    np.testing.assert_array_equal(out % N_GEOMETRIC, labels)
+    cube = np.floor(points / 0.6).astype(np.int64)
+    key = (cube[:, 0] * 1000 + cube[:, 1]) * 1000 + cube[:, 2]
+    for k in np.unique(key)[:50]:
+        for c in range(N_GEOMETRIC):
+            assert len(np.unique(out[(key == k) & (labels == c)])) <= 1
+    np.testing.assert_array_equal(object_labels(points, labels, N_GEOMETRIC), labels)
+    with pytest.raises(SystemExit):
+        main(["--classes", "2"])
