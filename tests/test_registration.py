@@ -156,14 +156,9 @@ def test_class_neighbour_cache_is_exact(rng, d_max):
     classes = rng.integers(0, c, 600)
     cache = ClassNeighbourCache(index, d_max, classes)
     points = np.vstack([rng.uniform(0, 1, (550, 3)), rng.uniform(1.2, 2, (50, 3))])
-    for step in (0.0, 1e-3, 1e-2, 0.05, 0.3, 1e-4, 1e-3):
+    for step in (0.0, 1e-3, 1e-2, 0.05, 0.3, 1e-4):
         points = points + rng.normal(0, step, points.shape)
-        # (a query may ask for some rows only: the others keep their anchors)
-        some = np.flatnonzero(rng.random(len(points)) < 0.5)
-        part_dist, part_idx = cache.query(points[some], some)
         dist, idx = cache.query(points)
-        np.testing.assert_array_equal(part_idx, idx[some])
-        np.testing.assert_array_equal(part_dist, dist[some])
         for k in range(c):
             rows = np.flatnonzero(classes == k)
             if k not in index.trees:

@@ -507,8 +507,7 @@ class ClassNeighbourCache:
     candidate scan serves every class; only rows whose candidates can have missed the
     answer go back to their class's tree. Exact, like :class:`NeighbourCache`: it returns
     the nearest target point of the row's class within ``d_max`` (a per-class cache each
-    cost a call per class and iteration: 24 classes made the E-step 3x dearer). Rows are
-    filled when first queried, so a query may ask for some of them only.
+    cost a call per class and iteration: 24 classes made the E-step 3x dearer).
     """
 
     def __init__(self, index: SemanticIndex, d_max: float, classes: np.ndarray,
@@ -517,26 +516,22 @@ class ClassNeighbourCache:
         self.d_max = float(d_max)
         self.k = int(max(k, 2))
         self.classes = np.ascontiguousarray(classes, dtype=np.int64)
-        n = len(self.classes)
-        self.anchor = np.zeros((n, 3))
-        self.candidates = np.full((n, self.k), len(index.points), np.int64)
-        self.reach = np.full(n, -1.0)  # (negative: never filled, stale)
+        self.anchor: np.ndarray | None = None
+        self.candidates = np.full((len(self.classes), self.k), len(index.points), np.int64)
+        self.reach = np.full(len(self.classes), np.inf)
 
     def _refresh(self, points: np.ndarray, rows: np.ndarray) -> None:
-        """Fill ``rows`` (unique) anchored at ``points`` (theirs)."""
         index, radius = self.index, 2.0 * self.d_max
         starts, grouped = _kernels.group_rows(self.classes[rows], np.ones(len(rows), bool),
                                               index.n_classes)
         for c in np.nonzero(np.diff(starts))[0]:
             tree = index.trees.get(int(c))
-            at = grouped[starts[c]:starts[c + 1]]
-            sel = rows[at]
-            self.anchor[sel] = points[at]
+            sel = rows[grouped[starts[c]:starts[c + 1]]]
+            self.anchor[sel] = points[sel]
             if tree is None:  # no target point of this class: never a candidate
-                self.reach[sel] = np.inf
                 continue
             k = min(self.k, tree.n)
-            dist, idx = tree.query(points[at], k=k, distance_upper_bound=radius,
+            dist, idx = tree.query(points[sel], k=k, distance_upper_bound=radius,
                                    workers=_workers(len(sel), k))
             dist, idx = dist.reshape(len(sel), k), idx.reshape(len(sel), k)
             found = idx < tree.n
@@ -548,23 +543,21 @@ class ClassNeighbourCache:
                 reach[found.all(axis=1)] = np.inf
             self.reach[sel] = reach
 
-    def query(self, points: np.ndarray, rows: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
-        """Return (distance, target row) of the nearest target point of each row's class
-        within d_max (inf / -1 beyond it or where the class has no target point), for the
-        cache's ``rows`` (unique; all: None) at ``points`` (theirs)."""
+    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Return (distance, target row) of each row's nearest target point of its class;
+        inf / -1 beyond d_max or where the class has no target point."""
         points = np.ascontiguousarray(points, dtype=float)
-        if rows is None:
-            rows = np.arange(len(self.classes))
+        if self.anchor is None:
+            self.anchor = np.empty_like(points)
+            self._refresh(points, np.arange(len(points)))
         target = self.index.points
-        dist, idx, stale = _kernels.cached_nearest(points, self.anchor[rows], self.reach[rows],
-                                                   self.candidates[rows], target, self.d_max)
+        dist, idx, stale = _kernels.cached_nearest(points, self.anchor, self.reach,
+                                                   self.candidates, target, self.d_max)
         stale = np.nonzero(stale)[0]
         if len(stale):
-            self._refresh(points[stale], rows[stale])
-            again = rows[stale]
-            d, i, _ = _kernels.cached_nearest(points[stale], self.anchor[again],
-                                              self.reach[again], self.candidates[again],
+            self._refresh(points, stale)
+            d, i, _ = _kernels.cached_nearest(points[stale], self.anchor[stale],
+                                              self.reach[stale], self.candidates[stale],
                                               target, self.d_max)
             dist[stale], idx[stale] = d, i
         return dist, idx
@@ -676,26 +669,17 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     # each rank's class candidates, by row (-1: none within d_max, or not searched)
     rank_target = np.full((top, n), -1, dtype=np.int64)
     rank_dist = np.zeros((top, n))
-    nn_label = index.labels[np.maximum(nn, 0)] if nearest is not None else None
     for rank in range(top):
         cls_of_point = np.ascontiguousarray(order[:, rank])
         searched = np.ones(n, bool) if rank == 0 else \
             source_probs[np.arange(n), cls_of_point] >= min_class_prob
-        if nearest is not None:
-            # the nearest point of class c is the nearest neighbour itself where that has
-            # class c (its ties aside); where nothing lies within d_max, nothing of class c
-            # does: only the other rows search their class (ICL office: about 1 in 6)
-            same = searched & (nn >= 0) & (nn_label == cls_of_point)
-            rank_target[rank, same] = nn[same]
-            rank_dist[rank, same] = nn_dist[same]
-            searched &= (nn >= 0) & ~same
         if caches is not None:
             rows = np.nonzero(searched)[0]
             cache = caches.get(rank)
-            if cache is None or not np.array_equal(cache.classes, cls_of_point):
+            if cache is None or not np.array_equal(cache.classes, cls_of_point[rows]):
                 # (another set of source rows: a cache holds one row's class for its life)
-                cache = caches[rank] = ClassNeighbourCache(index, d_max, cls_of_point)
-            dist, j = cache.query(source_in_target[rows], rows)
+                cache = caches[rank] = ClassNeighbourCache(index, d_max, cls_of_point[rows])
+            dist, j = cache.query(source_in_target[rows])
             ok = np.isfinite(dist)
             rank_target[rank, rows[ok]] = j[ok]
             rank_dist[rank, rows[ok]] = dist[ok]
