@@ -419,27 +419,13 @@ def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target
         if nearest[i] >= 0:
             src[m], tgt[m], dist[m], prior[m] = i, nearest[i], nearest_dist[i], nearest_prior[i]
             m += 1
-    # each rank's candidates grouped by class (a counting sort, each class in row order),
-    # then written class by class in the order of ``classes``
-    n_cls = source_probs.shape[1]
-    starts = np.empty(n_cls + 1, dtype=np.int64)
-    fill = np.empty(n_cls, dtype=np.int64)
-    grouped = np.empty(n, dtype=np.int64)
+    # each rank's candidates grouped by class (each class in row order), then written class
+    # by class in the order of ``classes``
+    wanted = np.empty(n, dtype=np.bool_)
     for rank in range(top):
-        starts[:] = 0
         for i in range(n):
-            t = rank_target[rank, i]
-            if t >= 0 and t != nearest[i]:
-                starts[order[i, rank] + 1] += 1
-        for g in range(n_cls):
-            starts[g + 1] += starts[g]
-        fill[:] = starts[:n_cls]
-        for i in range(n):
-            t = rank_target[rank, i]
-            if t >= 0 and t != nearest[i]:
-                c = order[i, rank]
-                grouped[fill[c]] = i
-                fill[c] += 1
+            wanted[i] = rank_target[rank, i] >= 0 and rank_target[rank, i] != nearest[i]
+        starts, grouped = group_rows(order[:, rank], wanted, source_probs.shape[1])
         for k in range(classes.shape[0]):
             c = classes[k]
             for p in range(starts[c], starts[c + 1]):

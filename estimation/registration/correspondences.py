@@ -499,20 +499,22 @@ class NeighbourCache:
         return dist, idx
 
 
-class ClassNeighbourCache:
+class ClassNeighbourCache(NeighbourCache):
     """:class:`NeighbourCache` for class-conditioned queries: each row searches the tree of
     its own class (``classes`` (n,), fixed for the cache's life), all rows in one pass.
 
     The candidates are kept as rows of the whole target (the classes' members), so one
-    candidate scan serves every class; only rows whose candidates can have missed the
-    answer go back to their class's tree. Exact, like :class:`NeighbourCache`: it returns
-    the nearest target point of the row's class within ``d_max`` (a per-class cache each
-    cost a call per class and iteration: 24 classes made the E-step 3x dearer).
+    candidate scan (the inherited :meth:`query`) serves every class; only rows whose
+    candidates can have missed the answer go back to their class's tree. Exact, like
+    :class:`NeighbourCache`: it returns the nearest target point of the row's class within
+    ``d_max`` (a per-class cache each cost a call per class and iteration: 24 classes made
+    the E-step 3x dearer).
     """
 
     def __init__(self, index: SemanticIndex, d_max: float, classes: np.ndarray,
                  k: int = 8):
         self.index = index
+        self.points = index.points
         self.d_max = float(d_max)
         self.k = int(max(k, 2))
         self.classes = np.ascontiguousarray(classes, dtype=np.int64)
@@ -520,7 +522,10 @@ class ClassNeighbourCache:
         self.candidates = np.full((len(self.classes), self.k), len(index.points), np.int64)
         self.reach = np.full(len(self.classes), np.inf)
 
-    def _refresh(self, points: np.ndarray, rows: np.ndarray) -> None:
+    def _refresh(self, points: np.ndarray, rows: np.ndarray | None) -> None:
+        if rows is None:
+            self.anchor = np.empty_like(points)
+            rows = np.arange(len(points))
         index, radius = self.index, 2.0 * self.d_max
         starts, grouped = _kernels.group_rows(self.classes[rows], np.ones(len(rows), bool),
                                               index.n_classes)
@@ -542,25 +547,6 @@ class ClassNeighbourCache:
             if k == tree.n:  # where every point of the class is a candidate: never stale
                 reach[found.all(axis=1)] = np.inf
             self.reach[sel] = reach
-
-    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return (distance, target row) of each row's nearest target point of its class;
-        inf / -1 beyond d_max or where the class has no target point."""
-        points = np.ascontiguousarray(points, dtype=float)
-        if self.anchor is None:
-            self.anchor = np.empty_like(points)
-            self._refresh(points, np.arange(len(points)))
-        target = self.index.points
-        dist, idx, stale = _kernels.cached_nearest(points, self.anchor, self.reach,
-                                                   self.candidates, target, self.d_max)
-        stale = np.nonzero(stale)[0]
-        if len(stale):
-            self._refresh(points, stale)
-            d, i, _ = _kernels.cached_nearest(points[stale], self.anchor[stale],
-                                              self.reach[stale], self.candidates[stale],
-                                              target, self.d_max)
-            dist[stale], idx[stale] = d, i
-        return dist, idx
 
 
 class SemanticIndex:

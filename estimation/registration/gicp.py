@@ -610,7 +610,6 @@ class Registration:
         # neighbour caches of the final d_max prepared on the second thread (run()): this
         # direction's and the reverse's; set _stop to end the preparation early
         self._forward_cache: tuple[float, Future] | None = None
-        self._step = 0.0  # run(): the last Gauss-Newton step
         self._reverse_cache: Future | None = None
         self._stop = threading.Event()
         # the source's KD-tree, lattice pitch and median radius made on the second thread
@@ -779,15 +778,19 @@ class Registration:
                                   time.perf_counter() - start, None, self._alpha)
 
     def correspondences(self, T: np.ndarray, d_max: float, rows: np.ndarray | None = None,
-                        cached: bool | None = None) -> Correspondences:
+                        step: float | None = None) -> Correspondences:
         """Return the correspondences (with omega_k) at ``T`` within ``d_max``.
 
         ``rows`` restricts the source to those points (indices stay into the full source).
-        The candidates come from a :class:`NeighbourCache` (the same pairs) with ``cached``
-        (run(): once the steps have become small), by default once ``d_max`` has annealed.
+        The candidates come from a :class:`NeighbourCache` (the same pairs) once ``step``,
+        the last Gauss-Newton step (run()), is below CACHE_STEP, Semantic-ICP's class
+        candidates once it is below CLASS_CACHE_STEP; without ``step`` both once ``d_max``
+        has annealed.
         """
-        if cached is None:
-            cached = d_max <= self.config.max_correspondence_distance
+        if step is None:
+            cached = class_cached = d_max <= self.config.max_correspondence_distance
+        else:
+            cached, class_cached = step < CACHE_STEP, step < CLASS_CACHE_STEP
         cache = None
         if self.config.cached_neighbours and cached:
             # annealed: the source now moves little per iteration (see NeighbourCache)
@@ -798,7 +801,8 @@ class Registration:
         if rows is not None:
             moved = transform_points(T, self.source[rows])
             if self.semantic:
-                corr = self._semantic(moved, self.source_probs[rows], d_max, cache, rows)
+                corr = self._semantic(moved, self.source_probs[rows], d_max,
+                                      cache, class_cached, rows)
             else:
                 corr = nearest_correspondences(moved, self.target_tree, d_max, cache)
             corr = replace(corr, source_idx=rows[corr.source_idx])
@@ -806,7 +810,7 @@ class Registration:
             return self._gated(T, d_max, corr)
         moved = transform_points(T, self.source)
         if self.semantic:
-            corr = self._semantic(moved, self.source_probs, d_max, cache)
+            corr = self._semantic(moved, self.source_probs, d_max, cache, class_cached)
         else:
             corr = nearest_correspondences(moved, self.target_tree, d_max, cache)
         self._prefetch_source(corr.source_idx)
@@ -986,19 +990,19 @@ class Registration:
         return self._boundary_radius
 
     def _class_caches(self, cache: NeighbourCache | None) -> dict | None:
-        """Per-class candidate caches, alive as long as the geometric ``cache`` (same d_max),
-        once the steps are below CLASS_CACHE_STEP."""
-        if cache is None or self._step >= CLASS_CACHE_STEP:
+        """Per-class candidate caches, alive as long as the geometric ``cache`` (same d_max)."""
+        if cache is None:
             return None
         if self._class_cache_owner is not cache:
             self._class_cache_owner, self._class_cache = cache, {}
         return self._class_cache
 
     def _semantic(self, moved: np.ndarray, probs: np.ndarray, d_max: float,
-                  cache: NeighbourCache | None, rows: np.ndarray | None = None
-                  ) -> Correspondences:
+                  cache: NeighbourCache | None, class_cached: bool,
+                  rows: np.ndarray | None = None) -> Correspondences:
         """Return Semantic-ICP's candidates and E-step weights (and update the EM sigma) of
-        the source ``rows`` (all: None), ``moved`` and ``probs`` theirs."""
+        the source ``rows`` (all: None), ``moved`` and ``probs`` theirs; the class candidates
+        from caches where ``class_cached``."""
         cfg = self.config
         if self._source_classes is None:  # (the source's labels do not change)
             self._source_classes = (top_class_order(self.source_probs, cfg.top_classes),
@@ -1022,7 +1026,8 @@ class Registration:
         corr = semantic_correspondences(
             moved, probs, self.semantic_index, d_max, residual_sigma=max(sigma, 1e-6),
             top_classes=cfg.top_classes, nearest=nearest, posterior=posterior,
-            caches=self._class_caches(cache), label_noise=label_noise, order=order)
+            caches=self._class_caches(cache) if class_cached else None,
+            label_noise=label_noise, order=order)
         if posterior and len(corr):
             # M-step of the isotropic residual variance: sigma^2 = sum w d^2 / (3 sum w)
             w = corr.weights
@@ -1131,9 +1136,7 @@ class Registration:
                     iterations -= 1
                     break
                 final_iterations += 1
-            self._step = step
-            corr = self.correspondences(T, d, coarse if annealing else None,
-                                        cached=step < CACHE_STEP)
+            corr = self.correspondences(T, d, coarse if annealing else None, step)
             if len(corr) < cfg.min_inliers:
                 return self._failed(T, f"only {len(corr)} correspondences within "
                                        f"d_max={d:g} m (need {cfg.min_inliers})",
