@@ -24,9 +24,10 @@ map (target)
     centres, as an octree map), each with its voxel's majority label.
 source (per trial, seeded)
     The room's points on one side of a random vertical plane through its centroid, 15000 of
-    them drawn at random, 5 mm Gaussian noise added, 10 % of the labels changed to another
-    class at random, moved into their own frame by a random rigid transform (5-30 deg, about
-    1.7 m): the exact ground truth ``T_target_source``.
+    them drawn at random (``--source-points``; 0: all of them, a raw half-room cloud), 5 mm
+    Gaussian noise added, 10 % of the labels changed to another class at random, moved into
+    their own frame by a random rigid transform (5-30 deg, about 1.7 m): the exact ground
+    truth ``T_target_source``.
 setting
     ``half`` (default, the held-out check's case): that half against the map of the whole
     room, so the source lies inside the map. ``part``: two overlapping parts, as two scans
@@ -97,6 +98,7 @@ N_CLASSES = N_GEOMETRIC  # the classes of the run (--classes)
 PITCH = 0.03
 METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "open3d-gicp")
 PART_OVERLAP = 1.0  # m: width of the slab two parts share (setting "part")
+SOURCE_POINTS = 15000  # points drawn for a trial's source (--source-points; 0: all)
 
 
 def labelled(points: np.ndarray, labels: np.ndarray) -> SemanticCloud:
@@ -161,7 +163,7 @@ def voxel_map(points: np.ndarray, labels: np.ndarray, kind: str, pitch: float = 
 
 
 def half_room_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                     n: int = 15000, noise: float = 0.005, wrong: float = 0.1
+                     n: int = SOURCE_POINTS, noise: float = 0.005, wrong: float = 0.1
                      ) -> tuple[SemanticCloud, np.ndarray]:
     """Return (source cloud in its own frame, T_target_source) of one trial."""
     source, T, _ = room_part_source(points, labels, rng, 0.0, n, noise, wrong)
@@ -169,7 +171,7 @@ def half_room_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Gene
 
 
 def room_part_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                     overlap: float = PART_OVERLAP, n: int = 15000, noise: float = 0.005,
+                     overlap: float = PART_OVERLAP, n: int = SOURCE_POINTS, noise: float = 0.005,
                      wrong: float = 0.1) -> tuple[SemanticCloud, np.ndarray, np.ndarray]:
     """Return (source cloud in its own frame, T_target_source, rows of the target's part).
 
@@ -181,7 +183,7 @@ def room_part_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Gene
     angle = rng.uniform(0.0, 2.0 * np.pi)
     s = (points - points.mean(axis=0)) @ [np.cos(angle), np.sin(angle), 0]
     side = np.flatnonzero(s > -0.5 * overlap)
-    rows = rng.choice(side, size=min(n, len(side)), replace=False)
+    rows = side if n <= 0 else rng.choice(side, size=min(n, len(side)), replace=False)
     source = points[rows] + rng.normal(scale=noise, size=(len(rows), 3))
     source_labels = labels[rows].copy()
     flip = rng.random(len(rows)) < wrong
@@ -220,7 +222,7 @@ def phase_covariance(source: np.ndarray, maps: list[np.ndarray], T: np.ndarray) 
 
 
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="half",
-             phases=0) -> dict:
+             phases=0, source_points=SOURCE_POINTS) -> dict:
     """Return every trial's numbers of one (room, map kind, offset, setting) cell.
 
     ``phases`` > 1 (GICP-SE(3), "half"): also the NEES with the grid-phase covariance
@@ -228,17 +230,18 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
     """
     target = labelled(*voxel_map(points, labels, kind))
     maps = phase_maps(points, labels, kind, phases) if phases > 1 and setting == "half" else []
-    sizes = []
+    sizes, source_sizes = [], []
     metres, degrees, d0 = OFFSETS[offset]
     rows = {m: [] for m in methods}
     for trial in range(seed0, seed0 + trials):
         rng = np.random.default_rng(trial)
         if setting == "part":
-            source, T_gt, part = room_part_source(points, labels, rng)
+            source, T_gt, part = room_part_source(points, labels, rng, n=source_points)
             target = labelled(*voxel_map(points[part], labels[part], kind))
         else:
-            source, T_gt = half_room_source(points, labels, rng)
+            source, T_gt = half_room_source(points, labels, rng, source_points)
         sizes.append(len(target.points))
+        source_sizes.append(len(source.points))
         init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
         for method in methods:
             if method == "open3d-gicp":
@@ -262,7 +265,8 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
                     P = result.covariance + phase_covariance(source.points, maps, T)
                     row["nees_phase"] = float(nees(err.tangent, P))
             rows[method].append(row)
-    return {"n_target": int(np.median(sizes)), "rows": rows}
+    return {"n_target": int(np.median(sizes)), "n_source": int(np.median(source_sizes)),
+            "rows": rows}
 
 
 def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half") -> None:
@@ -273,7 +277,8 @@ def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half")
     what = ("half against the whole room's map" if setting == "half" else
             f"part against an overlapping part's map ({PART_OVERLAP:g} m slab)")
     print(f"\n{name} room, {what}, 3 cm voxel {kind} (median {cell['n_target']} points), "
-          f"{offset} offset, {n} trials; 95 % bounds of the mean NEES of {n} "
+          f"sources of {cell['n_source']} points (median), {offset} offset, {n} trials; "
+          f"95 % bounds of the mean NEES of {n} "
           f"[{lower:.2f}, {upper:.2f}]; NEES and trusted over the converged runs")
     print("| method | success | converged | median d_SE3 mm | paired d_SE3 / open3d | "
           "median time s | paired time / open3d | NEES mean (median) | trusted | midpoint |")
@@ -326,11 +331,16 @@ def main(argv=None) -> int:
     parser.add_argument("--classes", type=int, default=N_GEOMETRIC,
                         help="semantic classes: 4 = the geometric ones; more stand in for "
                         "object labels (each 0.6 m block's segments hashed over them)")
+    parser.add_argument("--source-points", type=int, default=SOURCE_POINTS, metavar="N",
+                        help="points drawn for each trial's source (0: every point of the "
+                        "half, a raw half-room cloud)")
     parser.add_argument("--json", metavar="PATH", help="also write every trial's numbers")
     parser.add_argument("--phase-covariance", type=int, default=0, metavar="K",
                         help="also the NEES with the spread over K grid phases of the room's "
                         "own points added (GICP-SE(3), half setting; a diagnosis)")
     args = parser.parse_args(argv)
+    if args.source_points < 0:
+        parser.error("--source-points must be 0 (all) or positive")
     if args.classes < N_GEOMETRIC:
         parser.error(f"--classes must be at least {N_GEOMETRIC}")
     global N_CLASSES
@@ -353,7 +363,8 @@ def main(argv=None) -> int:
         for kind in args.maps.split(","):
             for offset in args.offsets.split(","):
                 cell = run_cell(points, labels, kind, offset, args.trials, methods,
-                                setting=args.setting, phases=args.phase_covariance)
+                                setting=args.setting, phases=args.phase_covariance,
+                                source_points=args.source_points)
                 report(name, kind, offset, cell, args.setting)
                 out[f"{name}/{kind}/{offset}/{args.setting}"] = cell
     print(f"\nload average at end {os.getloadavg()[0]:.2f}")

@@ -156,6 +156,7 @@ def _register(args, source, target, flip=None) -> dict:
                         else [float(v) for v in diagnostic.overlap]),
             "voxel_pitch_m": getattr(diagnostic, "voxel_pitch", None),
             "crossing_bias_m": getattr(diagnostic, "crossing_bias", None),
+            "map_error_m": getattr(diagnostic, "map_error", None),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:

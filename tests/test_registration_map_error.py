@@ -1,0 +1,119 @@
+"""The map's representation error (``RegistrationConfig.map_error``, issue 14, tenth round).
+
+A part of a room registered to the room's 3 cm voxel-centroid map has an error part that the
+source's density does not shrink: the map rounds edges, thins small objects and cuts surface
+layers where its grid lies, coherently over whole objects. The term models it as a random
+offset of every ``map_error_block`` cube of the map (standard deviation ``map_error`` x pitch
+per axis) and propagates it through the fixed-association bread. Checked here, on the real
+TUM room of tests/test_registration_indoor.py (every 10th frame):
+
+* the propagation: displacing the map's cubes by such random offsets moves the estimate as
+  the term predicts (the mean NEES of the moves against it is about 6), and a tenth of it is
+  far too small;
+* a dense source (60k points): without the term the mean NEES is far above the chi-square
+  bounds, with it below the upper bound (on this room's thinner surfaces about 2x
+  pessimistic); the estimate is the same;
+* where no voxel grid is found (i.i.d. clouds) nothing changes; bad values are refused.
+"""
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+from test_registration import make_pair
+
+from benchmarks.registration import D_FINAL, OFFSETS, register_ours
+from benchmarks.registration_indoor import half_room_source, labelled, room_cloud, voxel_map
+from estimation.covariance import chi2_bounds, nees
+from estimation.errors import EstimationError
+from estimation.registration import Registration, RegistrationConfig, pose_error, register
+from estimation.registration.metrics import offset_about_centroid
+
+
+@pytest.fixture(scope="module")
+def room():
+    points, labels = room_cloud("tum", step=10)
+    return points, labels, labelled(*voxel_map(points, labels, "centroids"))
+
+
+def _start(points, labels, seed, n=15000):
+    rng = np.random.default_rng(seed)
+    source, T_gt = half_room_source(points, labels, rng, n)
+    metres, degrees, d0 = OFFSETS["small"]
+    init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
+    return source, T_gt, init, d0
+
+
+def _displaced(target: np.ndarray, block: float, sigma: float, rng) -> np.ndarray:
+    cubes = np.floor(target / block).astype(np.int64)
+    _, inverse = np.unique(cubes, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    return target + rng.normal(scale=sigma, size=(inverse.max() + 1, 3))[inverse]
+
+
+@pytest.mark.slow
+def test_the_term_predicts_how_displaced_map_blocks_move_the_estimate(room):
+    points, labels, target = room
+    source, _, init, d0 = _start(points, labels, 0)
+    result, _ = register_ours(source, target, init, (d0, D_FINAL))
+    cfg = RegistrationConfig(max_correspondence_distance=D_FINAL, symmetric=False)
+    reg = Registration(source.points, target.points, cfg)
+    base = reg.run(result.T)
+    assert base.diagnostic.map_error is not None  # the grid was found: the term is in use
+    sol = reg.solution_terms(base.T, D_FINAL)
+    B, s = reg.map_error_information(sol)
+    predicted = np.linalg.solve(sol.A, np.linalg.solve(sol.A, B).T) / s ** 2  # per unit offset
+    sigma = 0.002
+    rng = np.random.default_rng(7)
+    moves = []
+    for _ in range(12):
+        moved_map = _displaced(target.points, cfg.map_error_block, sigma, rng)
+        T = Registration(source.points, moved_map, cfg).run(base.T).T
+        moves.append(gtsam.Pose3.Logmap(gtsam.Pose3(base.T).between(gtsam.Pose3(T))))
+    values = [nees(m, sigma ** 2 * predicted) for m in moves]
+    low, high = chi2_bounds(6, len(values))
+    # (measured: 5.6)
+    assert 0.7 * low < np.mean(values) < 1.3 * high, values
+    assert np.mean([nees(m, 0.1 * sigma ** 2 * predicted) for m in moves]) > 1.3 * high
+
+
+@pytest.mark.slow
+def test_a_dense_source_is_consistent_only_with_the_term(room):
+    points, labels, target = room
+    with_term, without, same = [], [], []
+    for seed in range(8):
+        source, T_gt, init, d0 = _start(points, labels, seed, 60000)
+        r, _ = register_ours(source, target, init, (d0, D_FINAL))
+        off, _ = register_ours(source, target, init, (d0, D_FINAL), map_error=None)
+        assert r.converged and r.diagnostic.map_error == pytest.approx(0.03 * 0.03, rel=1e-3)
+        err = pose_error(r.T, T_gt)
+        with_term.append(nees(err.tangent, r.covariance))
+        without.append(nees(err.tangent, off.covariance))
+        same.append(np.abs(r.T - off.T).max())
+    low, high = chi2_bounds(6, len(with_term))
+    assert max(same) == 0.0  # the term is covariance only
+    # measured: 15.6 without, 2.9 with. This room (every 10th frame) has thinner surfaces
+    # than the benchmark's (every 5th), on which map_error was measured (mean NEES 4.2-7.2
+    # with 150k-point sources, 14-31 without): the term is about 2x pessimistic here
+    assert np.mean(without) > high, without
+    assert 0.4 * low < np.mean(with_term) < high, with_term
+
+
+def test_nothing_changes_where_no_voxel_grid_is_found():
+    source, _, target, _, _ = make_pair(1000, 2000, 0.01)
+    cfg = RegistrationConfig(max_correspondence_distance=0.3)
+    a = register(source, target, config=cfg)
+    b = register(source, target, config=RegistrationConfig(max_correspondence_distance=0.3,
+                                                           map_error=None))
+    assert a.diagnostic.map_error is None
+    np.testing.assert_array_equal(a.T, b.T)
+    np.testing.assert_array_equal(a.covariance, b.covariance)
+
+
+@pytest.mark.parametrize("field, value", [("map_error", -0.01), ("map_error", float("nan")),
+                                          ("map_error", "0.03"), ("map_error_block", 0.0),
+                                          ("map_error_block", float("inf")),
+                                          ("map_error_block", None)])
+def test_bad_map_error_values_are_refused(field, value):
+    with pytest.raises(EstimationError, match=field):
+        RegistrationConfig(**{field: value})
