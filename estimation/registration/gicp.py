@@ -217,18 +217,19 @@ class RegistrationConfig:
         mean NEES 31.7 -> 7.3 (docs/registration.md, "Cell crossings"). False = the
         point-noise sandwich alone
     map_error : with same-voxel matching (a part of a room against the room's voxel-centroid
-        map), add the map's representation error: the map's surfaces within each cube of
-        edge ``map_error_block`` are taken as displaced together by a random 3-D offset of
+        map), the map's representation error: the map's surfaces within each cube of edge
+        ``map_error_block`` are taken as displaced together by a random 3-D offset of
         standard deviation ``map_error`` times the grid's pitch per axis
-        (:meth:`Registration.map_error_information`). A centroid map rounds edges, thins
+        (:meth:`Registration.map_error_information`); the covariance is the Loewner maximum
+        of that term's and the point-noise sandwich's. A centroid map rounds edges, thins
         small objects and cuts surface layers where its grid happens to lie, coherently over
         whole objects, so the fit's error has a part that does not shrink with the source's
         density: real rooms against their 3 cm map, mean NEES 8.4 / 14 / 31 (TUM) at 15k /
-        60k / 150k source points without the term. An empirical model: 0.025 was measured
-        on the two rooms at 2, 3 and 5 cm (docs/registration.md, "The map's representation
-        error"). None = not added
-    map_error_block : edge (m) of the cubes displaced together by ``map_error`` (0.8: the
-        block size over which the needed offset varied least with the map's pitch)
+        60k / 150k source points without the term, 5.1 (15k) and 4.2 (150k) with it. An
+        empirical size: 0.026-0.042 was needed on the two rooms at 2, 3 and 5 cm
+        (docs/registration.md, "The map's representation error"). None = not added
+    map_error_block : edge (m) of the cubes displaced together by ``map_error`` (0.8 m, an
+        object's scale; 0.4 m needs a larger ``map_error`` and fits as well)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
         choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise
@@ -367,10 +368,13 @@ class CovarianceDiagnostic:
         coherently over the whole overlap, which no residual statistic showed: measured mean
         NEES 11.5 on a real Kinect room and 414 on ICL-NUIM's office with the nearest
         centroid, 9.2 and 32 with ``voxel_matching``, 7.7 and 8.6 (30 trials, band
-        [4.8, 7.3]) with ``crossing_bias`` (docs/registration.md, "Real rooms", "Where the
-        room gap comes from", "Cell crossings")
-    model_covariance : (6, 6) the quantisation part of the reported covariance (zeros
-        without a lattice); ``covariance - model_covariance`` is the point-noise sandwich
+        [4.8, 7.3]) with ``crossing_bias``, 5.1 and 6.7 with ``map_error`` (docs/
+        registration.md, "Real rooms", "Where the room gap comes from", "Cell crossings",
+        "The map's representation error"); the flag stays down there because a converged
+        run in another basin has no second direction to contradict it
+    model_covariance : (6, 6) the model-error part of the reported covariance (quantisation,
+        cell crossings, the map's representation error; zeros without them);
+        ``covariance - model_covariance`` is the point-noise sandwich
     reassociation_gain : mean variance ratio, trace(P_fixed^-1 P_noise) / 6, of the
         point-noise sandwich with the re-matched bread against the fixed-association one
         (1.0 = the correspondences do not follow the noise; measured ~1.0 at 2 mm i.i.d.
