@@ -239,3 +239,21 @@ def test_object_labels_split_the_geometric_classes_into_coherent_segments():
     np.testing.assert_array_equal(object_labels(points, labels, N_GEOMETRIC), labels)
     with pytest.raises(SystemExit):
         main(["--classes", "2"])
+
+
+def test_source_points_zero_takes_the_whole_half():
+    """``--source-points 0``: every point of the half (a raw half-room cloud); N: N of them."""
+    from benchmarks.registration_indoor import main
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-3.0, 3.0, (5000, 3))
+    labels = rng.integers(0, 4, len(points))
+    whole, T = half_room_source(points, labels, np.random.default_rng(1), 0)
+    some, _ = half_room_source(points, labels, np.random.default_rng(1), 1000)
+    assert len(some.points) == 1000 and 2000 < len(whole.points) < 3000
+    # every source point, moved back by the truth, lies within the noise of a room point
+    back = whole.points @ T[:3, :3].T + T[:3, 3]
+    from scipy.spatial import cKDTree
+    assert cKDTree(points).query(back)[0].max() < 0.05
+    with pytest.raises(SystemExit):
+        main(["--source-points", "-1"])
