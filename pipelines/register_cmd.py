@@ -228,7 +228,11 @@ def _summary(out: dict) -> str:
                  f"r_err={out['r_err_rad']:.4f} rad")
     diagnostic = out.get("covariance_diagnostic")
     if diagnostic and not diagnostic["covariance_trusted"]:
-        from estimation.registration.gicp import RegistrationConfig, source_inside_target
+        from estimation.registration.gicp import (
+            INSIDE_TRUSTED_COVERAGE,
+            RegistrationConfig,
+            source_inside_target,
+        )
 
         overlap = diagnostic.get("overlap")
         gap = diagnostic.get("direction_gap")
@@ -238,8 +242,15 @@ def _summary(out: dict) -> str:
             text += (f"; covariance not trusted (the two directions found different "
                      f"solutions: gap {gap:.0f}, another basin?)")
         elif overlap is not None and source_inside_target(*overlap):
-            text += ("; covariance not trusted (the source lies inside a map: the map's "
-                     "representation error is only partly in it)")
+            if diagnostic.get("map_error_m") is None:
+                text += ("; covariance not trusted (the source lies inside a map whose voxel "
+                         "grid was not found: the map's representation error is not in it)")
+            elif overlap[0] < INSIDE_TRUSTED_COVERAGE:
+                text += (f"; covariance not trusted (the source lies inside a map, but only "
+                         f"{overlap[0]:.1%} of it on the map's surfaces: another basin?)")
+            else:
+                text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
+                         f"ratio {diagnostic['correlation_ratio']:.2f})")
         else:
             text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
                      f"ratio {diagnostic['correlation_ratio']:.2f})")

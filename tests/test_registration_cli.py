@@ -81,7 +81,11 @@ def test_the_summary_says_why_the_covariance_is_not_trusted():
            "inliers": 100, "time_s": 0.1,
            "covariance_diagnostic": {"covariance_trusted": False, "correlation_ratio": 0.99,
                                      "overlap": [1.0, 0.3]}}
-    assert "the source lies inside a map" in _summary(out)
+    assert "inside a map whose voxel grid was not found" in _summary(out)
+    out["covariance_diagnostic"].update(map_error_m=0.0009, overlap=[0.985, 0.3])
+    assert "only 98.5% of it on the map's surfaces" in _summary(out)
+    out["covariance_diagnostic"].update(overlap=[1.0, 0.3], correlation_ratio=4.5)
+    assert "ratio 4.50" in _summary(out)
     out["covariance_diagnostic"].update(overlap=[0.7, 0.7], correlation_ratio=5.2)
     assert "residuals correlated beyond its blocks: ratio 5.20" in _summary(out)
     out["covariance_diagnostic"]["overlap"] = None
