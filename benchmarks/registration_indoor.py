@@ -309,6 +309,14 @@ def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half")
             print(f"  {method} over its {len(right)} converged runs within 0.1 m: mean NEES "
                   f"{np.mean(right):.2f} (median {np.median(right):.2f}), 95 % bounds "
                   f"[{low:.2f}, {high:.2f}]")
+        trusted = [r for r in converged if r.get("trusted")]
+        if trusted:
+            # what a user who keeps only the trusted results gets
+            low, high = chi2_bounds(6, len(trusted))
+            print(f"  {method} over its {len(trusted)} trusted runs: mean NEES "
+                  f"{np.mean([r['nees'] for r in trusted]):.2f}, 95 % bounds [{low:.2f}, "
+                  f"{high:.2f}]; {sum(r['t_err_m'] >= 0.1 for r in trusted)} of them 0.1 m "
+                  f"or more off")
         with_phase = [r["nees_phase"] for r in converged if "nees_phase" in r]
         if with_phase:
             print(f"  {method} with the grid-phase covariance of the room's points "
