@@ -571,6 +571,10 @@ PREPARE_FORWARD_STEP = 1e-1
 # 86 -> 82 ms a registration; 0.5 m / 5 deg off without annealing (the first two steps 0.7,
 # 0.2): 50 -> 48 ms
 CACHE_STEP = 1e-1
+# an annealed registration with the residual-based kernel keeps the wide one (cauchy_alpha)
+# through its final stage until that converges once (False: from the final stage on, the
+# narrow one; 3 of 20 dense starts on a real office then ran out of iterations 2-5 cm off)
+WIDE_FINAL_STAGE = True
 # the re-matched bread (Registration.reassociation_hessian) of a source with more points is
 # taken over this many evenly strided rows (150k-point room scans: 0.47 -> 0.1 s, the
 # covariance within a few per cent)
@@ -1119,12 +1123,14 @@ class Registration:
         """True when alpha follows the residuals (``cauchy_scale="auto"``, no lattice)."""
         return self.config.cauchy_scale == "auto" and self._lattice is None
 
-    def _update_alpha(self, e: np.ndarray, annealing: bool = False) -> None:
+    def _update_alpha(self, e: np.ndarray, wide: bool = False) -> None:
         """Set the Cauchy alpha from the whitened residuals ``e`` (squared norms) if adaptive;
-        ``cauchy_alpha`` while ``annealing`` (the wide kernel finds the basin: a dense source
-        against a room's map, with the residual-based alpha from the first stage, slid to
-        the wrong basin or ran out of iterations in 3 of 12 starts that Open3D found)."""
-        if annealing:
+        ``cauchy_alpha`` where ``wide`` (while annealing, and in the final stage until it has
+        converged once: the wide kernel finds the basin. Dense sources against a room's map
+        with the residual-based alpha from the first stage slid into another basin or ran
+        out of iterations in 3 of 12 starts that Open3D found at 150k points, and with it
+        from the final stage on in 3 of 20 at 60k)."""
+        if wide:
             self._alpha = self.config.cauchy_alpha
         elif self.adaptive_scale and len(e):
             sigma = 1.4826 * float(np.median(np.sqrt(e)))
@@ -1197,6 +1203,9 @@ class Registration:
             annealing_budget = stages * (cfg.stage_iterations if cfg.anneal == "convergence"
                                          else 1)
         final_iterations = 0
+        # an annealed registration keeps the wide kernel (cauchy_alpha) through its final stage
+        # until that converges, then narrows it to the residual-based alpha and converges again
+        wide = annealing_budget > 0 and self.adaptive_scale and WIDE_FINAL_STAGE
         # the final stage's (_prepare_forward) and the reverse's (_prepare_reverse) preparation
         # started
         prepared_forward = prepared_reverse = False
@@ -1217,7 +1226,7 @@ class Registration:
             src_all, tgt_all = self._matched_arrays(corr)
             Ut = self._whitening(corr, T[:3, :3])
             e = mahalanobis(T, src_all, corr.source_idx, tgt_all, corr.target_idx, Ut)
-            self._update_alpha(e, annealing)
+            self._update_alpha(e, annealing or wide)
             cost_log.append(self._cost(e, corr.weights))
             if cfg.factors == "batched" and cfg.optimizer == "gn" and cfg.inner_iterations == 1:
                 # one Gauss-Newton step of the batched factor, from its normal equations
@@ -1254,6 +1263,9 @@ class Registration:
                 self._prepare_reverse(T_new, d)
             if step < cfg.tolerance:
                 T = T_new
+                if wide:  # converged with the wide kernel: now the narrow one
+                    wide, T_prev = False, None
+                    continue
                 if self._voxel_grid_found(T):  # inside a centroid map: on, matched by cell
                     T_prev = None
                     continue
@@ -1262,6 +1274,9 @@ class Registration:
             if two_cycle:  # stop in the middle of the cycle
                 half = 0.5 * gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new)))
                 T = (gtsam.Pose3(T) * gtsam.Pose3.Expmap(half)).matrix()
+                if wide:
+                    wide, T_prev = False, None
+                    continue
                 if self._voxel_grid_found(T):
                     T_prev = None
                     continue
