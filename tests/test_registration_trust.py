@@ -73,8 +73,7 @@ def test_the_wide_kernel_while_annealing_ends_the_slow_slides(office, seed, monk
     # round) these two starts crawled along the room, the cost falling a little every
     # iteration, and ended 25-48 mm off after 60 final iterations; a dense source (150k
     # points) slid into another basin or ran out of iterations in 3 of 12 starts on the
-    # benchmark's room. With cauchy_alpha while annealing (and in the final stage until it
-    # converges once) they converge within 60.
+    # benchmark's room. With cauchy_alpha while annealing they converge within 60.
     points, labels, target = office
     source, T_gt, init, d0 = _start(points, labels, seed)
     done, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=60)

@@ -571,9 +571,10 @@ PREPARE_FORWARD_STEP = 1e-1
 # 86 -> 82 ms a registration; 0.5 m / 5 deg off without annealing (the first two steps 0.7,
 # 0.2): 50 -> 48 ms
 CACHE_STEP = 1e-1
-# an annealed registration with the residual-based kernel keeps the wide one (cauchy_alpha)
-# through its final stage until that converges once (False: from the final stage on, the
-# narrow one; 3 of 20 dense starts on a real office then ran out of iterations 2-5 cm off)
+# an annealed registration whose final stage has not converged after stage_iterations with
+# the residual-based kernel takes the wide one (cauchy_alpha) until it converges, then the
+# narrow one again (False: not; 3 of 20 dense starts on a real office then ran out of
+# iterations 2-5 cm off)
 WIDE_FINAL_STAGE = True
 # the re-matched bread (Registration.reassociation_hessian) of a source with more points is
 # taken over this many evenly strided rows (150k-point room scans: 0.47 -> 0.1 s, the
@@ -1125,11 +1126,12 @@ class Registration:
 
     def _update_alpha(self, e: np.ndarray, wide: bool = False) -> None:
         """Set the Cauchy alpha from the whitened residuals ``e`` (squared norms) if adaptive;
-        ``cauchy_alpha`` where ``wide`` (while annealing, and in the final stage until it has
-        converged once: the wide kernel finds the basin. Dense sources against a room's map
-        with the residual-based alpha from the first stage slid into another basin or ran
-        out of iterations in 3 of 12 starts that Open3D found at 150k points, and with it
-        from the final stage on in 3 of 20 at 60k)."""
+        ``cauchy_alpha`` where ``wide`` (while annealing, and in a final stage that has not
+        converged after ``stage_iterations``, until it converges: the wide kernel finds the
+        basin. Dense sources against a room's map with the residual-based alpha from the
+        first stage slid into another basin or ran out of iterations in 3 of 12 starts that
+        Open3D found at 150k points, and with it throughout the final stage in 3 of 20 at
+        60k)."""
         if wide:
             self._alpha = self.config.cauchy_alpha
         elif self.adaptive_scale and len(e):
@@ -1203,9 +1205,11 @@ class Registration:
             annealing_budget = stages * (cfg.stage_iterations if cfg.anneal == "convergence"
                                          else 1)
         final_iterations = 0
-        # an annealed registration keeps the wide kernel (cauchy_alpha) through its final stage
-        # until that converges, then narrows it to the residual-based alpha and converges again
-        wide = annealing_budget > 0 and self.adaptive_scale and WIDE_FINAL_STAGE
+        # an annealed registration whose final stage (residual-based kernel) has not converged
+        # after stage_iterations is crawling: the wide kernel (cauchy_alpha) until it
+        # converges, then the narrow one again
+        rescue = annealing_budget > 0 and self.adaptive_scale and WIDE_FINAL_STAGE
+        wide = False
         # the final stage's (_prepare_forward) and the reverse's (_prepare_reverse) preparation
         # started
         prepared_forward = prepared_reverse = False
@@ -1217,6 +1221,8 @@ class Registration:
                     iterations -= 1
                     break
                 final_iterations += 1
+                if rescue and final_iterations > cfg.stage_iterations:
+                    rescue, wide, T_prev = False, True, None
             corr = self.correspondences(T, d, coarse if annealing else None, step)
             if len(corr) < cfg.min_inliers:
                 return self._failed(T, f"only {len(corr)} correspondences within "
