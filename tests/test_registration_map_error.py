@@ -130,7 +130,7 @@ def office():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed, right", [(0, True), (1, True), (28, False)])
+@pytest.mark.parametrize("seed, right", [(0, True), (1, True), (13, False), (28, False)])
 def test_inside_a_map_only_a_fully_covered_run_is_trusted(office, seed, right, monkeypatch):
     points, labels, target = office
     source, T_gt, init, d0 = _start(points, labels, seed)
@@ -138,8 +138,7 @@ def test_inside_a_map_only_a_fully_covered_run_is_trusted(office, seed, right, m
     d = result.diagnostic
     assert result.converged and not d.symmetric and d.map_error is not None  # inside
     assert (pose_error(result.T, T_gt).t_err_m < 0.01) == right
-    # measured coverage 1.000 in the right basin, 0.989 in the wrong one (seed 28, 13 cm off;
-    # seed 13, 17 cm off at 0.983, no longer converges since the wide final stage)
+    # measured coverage 1.000 in the right basin, 0.983 / 0.989 in the wrong ones (16 / 13 cm)
     assert (d.overlap[0] >= gicp.INSIDE_TRUSTED_COVERAGE) == right
     assert d.trusted == right
     if not right:  # the coverage is what flags it
