@@ -401,8 +401,8 @@ class CovarianceDiagnostic:
         (``RegistrationConfig.crossing_bias``) that was added, or None; its covariance is
         part of ``model_covariance``
     map_error : the standard deviation (m, per axis) of the blocks' offsets of the
-        map-representation term (``RegistrationConfig.map_error``) that was added, or None;
-        its covariance is part of ``model_covariance``
+        map-representation term (``RegistrationConfig.map_error``) that was used, or None;
+        what it adds to the point-noise sandwich is part of ``model_covariance``
     """
 
     quantisation_pitch: float | None
@@ -577,8 +577,8 @@ CACHE_STEP = 1e-1
 # iterations 2-5 cm off)
 WIDE_FINAL_STAGE = True
 # the re-matched bread (Registration.reassociation_hessian) of a source with more points is
-# taken over this many evenly strided rows (150k-point room scans: 0.47 -> 0.1 s, the
-# covariance within a few per cent)
+# taken over this many evenly strided rows (150k-point room scans: 0.3-0.5 -> 0.1-0.2 s;
+# the point-noise covariance 0.99-1.32x the full one's)
 REASSOCIATION_ROWS = 30000
 # Semantic-ICP's class candidates are cached from smaller steps: during the annealing the
 # coarse rows still move a centimetre or more an iteration and most of them (2000-2700 of
@@ -1006,8 +1006,10 @@ class Registration:
         ``map_error`` times the grid's pitch. A shift u of a pair's target point changes its
         score by G_k u, G_k = w_k J_k^T U_k^T (:meth:`SolutionTerms.shift_sensitivity`), so
         the score sums gain ``s^2 sum_b G_b G_b^T``, G_b the sum of G_k over the pairs whose
-        target point is in cube b. It is added to the model part of the covariance, beside
-        the point-noise sandwich; the estimate does not change.
+        target point is in cube b. The reported covariance is the Loewner maximum of
+        ``A^-1 B_map A^-1`` and the point-noise sandwich (with the other model terms): the
+        sandwich's meat already holds the map's error at its own blocks' scale. The estimate
+        does not change.
         """
         cfg = self.config
         s = cfg.map_error * self._grid.pitch
