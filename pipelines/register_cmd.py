@@ -236,21 +236,18 @@ def _summary(out: dict) -> str:
 
         overlap = diagnostic.get("overlap")
         gap = diagnostic.get("direction_gap")
+        inside = overlap is not None and source_inside_target(*overlap)
         if not out["converged"]:
             text += "; covariance not trusted (the estimate did not converge)"
         elif gap is not None and gap > RegistrationConfig.trust_gap:
             text += (f"; covariance not trusted (the two directions found different "
                      f"solutions: gap {gap:.0f}, another basin?)")
-        elif overlap is not None and source_inside_target(*overlap):
-            if diagnostic.get("map_error_m") is None:
-                text += ("; covariance not trusted (the source lies inside a map whose voxel "
-                         "grid was not found: the map's representation error is not in it)")
-            elif overlap[0] < INSIDE_TRUSTED_COVERAGE:
-                text += (f"; covariance not trusted (the source lies inside a map, but only "
-                         f"{overlap[0]:.1%} of it on the map's surfaces: another basin?)")
-            else:
-                text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
-                         f"ratio {diagnostic['correlation_ratio']:.2f})")
+        elif inside and diagnostic.get("map_error_m") is None:
+            text += ("; covariance not trusted (the source lies inside a map whose voxel "
+                     "grid was not found: the map's representation error is not in it)")
+        elif inside and overlap[0] < INSIDE_TRUSTED_COVERAGE:
+            text += (f"; covariance not trusted (the source lies inside a map, but only "
+                     f"{overlap[0]:.1%} of it on the map's surfaces: another basin?)")
         else:
             text += (f"; covariance not trusted (residuals correlated beyond its blocks: "
                      f"ratio {diagnostic['correlation_ratio']:.2f})")

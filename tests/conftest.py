@@ -1,4 +1,5 @@
-"""Shared fixtures: the read-only shared data folder and seeded generators."""
+"""Shared fixtures: the read-only shared data folder, seeded generators and the real RGB-D
+rooms against their voxel maps."""
 from __future__ import annotations
 
 import os
@@ -71,3 +72,22 @@ def shared_data() -> Path:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(12345)
+
+
+@pytest.fixture(scope="session")
+def centroid_room():
+    """Return ``get(name, step)``: (points, labels, the 3 cm voxel-centroid map) of a real
+    RGB-D room as benchmarks/registration_indoor.py fuses it, built once per session (each
+    takes seconds; several test modules register against the same rooms)."""
+    from benchmarks.registration_indoor import labelled, room_cloud, voxel_map
+
+    rooms = {}
+
+    def get(name: str, step: int):
+        if (name, step) not in rooms:
+            points, labels = room_cloud(name, step=step)
+            rooms[name, step] = (points, labels,
+                                 labelled(*voxel_map(points, labels, "centroids")))
+        return rooms[name, step]
+
+    return get

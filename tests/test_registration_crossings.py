@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import half_room_source, labelled, room_cloud, voxel_map
+from benchmarks.registration_indoor import half_room_source
 from estimation.covariance import nees
 from estimation.errors import EstimationError
 from estimation.registration import RegistrationConfig, gicp, pose_error
@@ -71,15 +71,14 @@ def test_bad_crossing_bias_values_are_refused():
 
 
 @pytest.mark.slow
-def test_the_crossing_term_calibrates_the_office_against_its_voxel_map():
+def test_the_crossing_term_calibrates_the_office_against_its_voxel_map(centroid_room):
     # ICL-NUIM's office (a CAD room in its own axes: its floor and walls parallel to the
     # grid) against its 3 cm centroid map. Measured on the benchmark's room (12 trials):
     # mean NEES 31.7 without the term, 7.3 with it; here (the test's room, 8 starts, the
     # converged runs: measured 6.8 and 46 over 7 before the tenth round) the same trials
     # with and without; the map-representation term (map_error) off in both, since it
     # covers part of the same error (with it: 4.3 and 4.6)
-    points, labels = room_cloud("icl", step=10)
-    target = labelled(*voxel_map(points, labels, "centroids"))
+    points, labels, target = centroid_room("icl", 10)
     metres, degrees, d0 = OFFSETS["small"]
     with_term, without, shrunk = [], [], []
     for seed in range(8):

@@ -26,7 +26,6 @@ from benchmarks.registration_indoor import (
     labelled,
     phase_covariance,
     phase_maps,
-    room_cloud,
     room_part_source,
     voxel_map,
 )
@@ -39,9 +38,8 @@ N_TRIALS = 30
 
 
 @pytest.fixture(scope="module")
-def room():
-    points, labels = room_cloud("tum", step=10)
-    return points, labels, labelled(*voxel_map(points, labels, "centroids"))
+def room(centroid_room):
+    return centroid_room("tum", 10)
 
 
 def trials(room, n, **options):

@@ -21,27 +21,17 @@ import gtsam
 import numpy as np
 import pytest
 from test_registration import make_pair
+from test_registration_trust import small_offset_start
 
-from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import half_room_source, labelled, room_cloud, voxel_map
+from benchmarks.registration import D_FINAL, register_ours
 from estimation.covariance import chi2_bounds, nees
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, gicp, pose_error, register
-from estimation.registration.metrics import offset_about_centroid
 
 
 @pytest.fixture(scope="module")
-def room():
-    points, labels = room_cloud("tum", step=10)
-    return points, labels, labelled(*voxel_map(points, labels, "centroids"))
-
-
-def _start(points, labels, seed, n=15000):
-    rng = np.random.default_rng(seed)
-    source, T_gt = half_room_source(points, labels, rng, n)
-    metres, degrees, d0 = OFFSETS["small"]
-    init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
-    return source, T_gt, init, d0
+def room(centroid_room):
+    return centroid_room("tum", 10)
 
 
 def _displaced(target: np.ndarray, block: float, sigma: float, rng) -> np.ndarray:
@@ -54,7 +44,7 @@ def _displaced(target: np.ndarray, block: float, sigma: float, rng) -> np.ndarra
 @pytest.mark.slow
 def test_the_term_predicts_how_displaced_map_blocks_move_the_estimate(room):
     points, labels, target = room
-    source, _, init, d0 = _start(points, labels, 0)
+    source, _, init, d0 = small_offset_start(points, labels, 0)
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
     cfg = RegistrationConfig(max_correspondence_distance=D_FINAL, symmetric=False)
     reg = Registration(source.points, target.points, cfg)
@@ -84,7 +74,7 @@ def test_a_dense_source_is_consistent_only_with_the_term(room):
     points, labels, target = room
     with_term, without, same = [], [], []
     for seed in range(8):
-        source, T_gt, init, d0 = _start(points, labels, seed, 60000)
+        source, T_gt, init, d0 = small_offset_start(points, labels, seed, 60000)
         r, _ = register_ours(source, target, init, (d0, D_FINAL))
         off, _ = register_ours(source, target, init, (d0, D_FINAL), map_error=None)
         assert r.converged and r.diagnostic.map_error == pytest.approx(0.03 * 0.03, rel=1e-3)
@@ -122,18 +112,17 @@ def test_bad_map_error_values_are_refused(field, value):
 
 
 @pytest.fixture(scope="module")
-def office():
+def office(centroid_room):
     # the benchmark's ICL-NUIM office (every 5th frame), where two small-offset starts
     # converge in another basin while the source still lies inside the map
-    points, labels = room_cloud("icl", step=5)
-    return points, labels, labelled(*voxel_map(points, labels, "centroids"))
+    return centroid_room("icl", 5)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed, right", [(0, True), (1, True), (13, False), (28, False)])
 def test_inside_a_map_only_a_fully_covered_run_is_trusted(office, seed, right, monkeypatch):
     points, labels, target = office
-    source, T_gt, init, d0 = _start(points, labels, seed)
+    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
     d = result.diagnostic
     assert result.converged and not d.symmetric and d.map_error is not None  # inside
@@ -155,7 +144,7 @@ def test_the_dense_sources_bread_over_strided_rows_keeps_the_covariance(room, mo
     # evenly strided rows (150k points: 0.3-0.5 -> 0.1-0.2 s); the point-noise covariance
     # stays within a few tens of per cent, on the conservative side (measured 0.99-1.32x)
     points, labels, target = room
-    source, _, init, d0 = _start(points, labels, 1, 60000)
+    source, _, init, d0 = small_offset_start(points, labels, 1, 60000)
     strided, _ = register_ours(source, target, init, (d0, D_FINAL))
     monkeypatch.setattr(gicp, "REASSOCIATION_ROWS", 10 ** 9)
     full, _ = register_ours(source, target, init, (d0, D_FINAL))
@@ -174,7 +163,7 @@ def test_the_wide_kernel_through_the_final_stage_ends_a_dense_slide(office, monk
     # final stage's 31st iteration until it converges, then the narrow one, it converges at
     # 1.0 mm
     points, labels, target = office
-    source, T_gt, init, d0 = _start(points, labels, 17, 60000)
+    source, T_gt, init, d0 = small_offset_start(points, labels, 17, 60000)
     done, _ = register_ours(source, target, init, (d0, D_FINAL))
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
     assert done.cauchy_alpha < 1.0  # it ended with the narrow kernel

@@ -20,21 +20,21 @@ import pytest
 from test_registration import make_pair
 
 from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import half_room_source, labelled, room_cloud, voxel_map
+from benchmarks.registration_indoor import SOURCE_POINTS, half_room_source
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, pose_error, register
 from estimation.registration.metrics import offset_about_centroid
 
 
 @pytest.fixture(scope="module")
-def office():
-    points, labels = room_cloud("icl", step=10)
-    return points, labels, labelled(*voxel_map(points, labels, "centroids"))
+def office(centroid_room):
+    return centroid_room("icl", 10)
 
 
-def _start(points, labels, seed):
+def small_offset_start(points, labels, seed, n=SOURCE_POINTS):
+    """(source, T_gt, initial guess, d0) of the benchmark's trial ``seed``, ``n`` points."""
     rng = np.random.default_rng(seed)
-    source, T_gt = half_room_source(points, labels, rng)
+    source, T_gt = half_room_source(points, labels, rng, n)
     metres, degrees, d0 = OFFSETS["small"]
     init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
     return source, T_gt, init, d0
@@ -43,7 +43,7 @@ def _start(points, labels, seed):
 @pytest.mark.parametrize("seed", [19, 22])
 def test_two_directions_in_different_basins_are_not_trusted(office, seed):
     points, labels, target = office
-    source, T_gt, init, d0 = _start(points, labels, seed)
+    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
     off, _ = register_ours(source, target, init, (d0, D_FINAL), trust_gap=math.inf)
     assert result.converged and pose_error(result.T, T_gt).t_err_m > 0.1  # another basin
@@ -59,7 +59,7 @@ def test_a_run_that_did_not_converge_is_not_trusted(office, seed):
     # cut after 3 final iterations these starts end unconverged (seed 5 37 mm off); with the
     # default 150 they converge (in 43 / 73 iterations, measured)
     points, labels, target = office
-    source, T_gt, init, d0 = _start(points, labels, seed)
+    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
     cut, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=3)
     assert not cut.converged
     assert cut.diagnostic is not None and not cut.diagnostic.trusted
@@ -75,7 +75,7 @@ def test_the_wide_kernel_while_annealing_ends_the_slow_slides(office, seed, monk
     # points) slid into another basin or ran out of iterations in 3 of 12 starts on the
     # benchmark's room. With cauchy_alpha while annealing they converge within 60.
     points, labels, target = office
-    source, T_gt, init, d0 = _start(points, labels, seed)
+    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
     done, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=60)
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
     update = Registration._update_alpha

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import half_room_source, labelled, room_cloud, voxel_map
+from benchmarks.registration_indoor import half_room_source
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
 from estimation.registration.correspondences import voxel_grid
@@ -157,24 +157,23 @@ def _errors(points, labels, target, trials, **options):
     return np.array(out)
 
 
-def _same_and_nearest(name: str, trials: int = 6) -> tuple[np.ndarray, np.ndarray]:
-    """Errors of the same trials on a real room's 3 cm centroid map, with same-voxel matching
-    (the default) and with the nearest centroid."""
-    points, labels = room_cloud(name, step=10)
-    target = labelled(*voxel_map(points, labels, "centroids"))
+def _same_and_nearest(room, trials: int = 6) -> tuple[np.ndarray, np.ndarray]:
+    """Errors of the same trials on a real room's 3 cm centroid map (``room``: points,
+    labels, map), with same-voxel matching (the default) and with the nearest centroid."""
+    points, labels, target = room
     return (_errors(points, labels, target, trials),
             _errors(points, labels, target, trials, voxel_matching=None))
 
 
 @pytest.mark.slow
-def test_same_voxel_matching_is_far_more_accurate_on_a_real_office_map():
+def test_same_voxel_matching_is_far_more_accurate_on_a_real_office_map(centroid_room):
     # ICL-NUIM's office against its 3 cm centroid map (measured on the benchmark's room:
     # median d_SE3 3.46 -> 1.31 mm); the same trials with the nearest centroid must lose
-    same, nearest = _same_and_nearest("icl")
+    same, nearest = _same_and_nearest(centroid_room("icl", 10))
     assert np.median(same / nearest) < 0.6, (same, nearest)
 
 
 @pytest.mark.slow
-def test_same_voxel_matching_is_no_worse_on_a_real_kinect_room():
-    same, nearest = _same_and_nearest("tum")
+def test_same_voxel_matching_is_no_worse_on_a_real_kinect_room(centroid_room):
+    same, nearest = _same_and_nearest(centroid_room("tum", 10))
     assert np.median(same) < 1.15 * np.median(nearest), (same, nearest)

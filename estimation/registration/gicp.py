@@ -1691,10 +1691,11 @@ class Registration:
         n_src = len(self.source)
         rows, scale = None, 1.0
         if n_src > REASSOCIATION_ROWS:
-            rows = np.arange(0, n_src, -(-n_src // REASSOCIATION_ROWS))
+            stride = -(-n_src // REASSOCIATION_ROWS)
+            rows = np.arange(0, n_src, stride)
             scale = n_src / len(rows)
             steps = steps * np.sqrt(scale)  # the scale at which the rows' estimate varies
-            F0 = sol.scores[np.isin(sol.corr.source_idx, rows)].sum(axis=0)
+            F0 = sol.scores[sol.corr.source_idx % stride == 0].sum(axis=0)
         else:
             F0 = sol.scores.sum(axis=0)
         sigma = self._sigma  # Semantic-ICP's E-step re-estimates it; keep the solution's
