@@ -172,6 +172,74 @@ def test_class_neighbour_cache_is_exact(rng, d_max):
             assert np.all(idx[rows][~found] == -1)
 
 
+def test_neighbour_cache_queries_by_rows_are_exact(rng):
+    """A cache over the source's rows answers queries of some rows (strided, coarse) and of
+    all of them in turn, each row keeping its own anchor, exactly as the tree."""
+    from estimation.registration.correspondences import NeighbourCache
+
+    target = rng.uniform(0, 1, (3000, 3))
+    tree = cKDTree(target)
+    cache = NeighbourCache(tree, 0.05, 8, 800)
+    points = rng.uniform(0, 1, (800, 3))
+    subsets = (np.arange(0, 800, 7), None, rng.permutation(800)[:300], None,
+               np.arange(0, 800, 3))
+    for step, rows in zip((0.0, 1e-3, 1e-2, 1e-4, 0.05), subsets):
+        points = points + rng.normal(0, step, points.shape)
+        query = points if rows is None else points[rows]
+        dist, idx = cache.query(query, rows)
+        ref_dist, ref_idx = tree.query(query, distance_upper_bound=0.05)
+        found = np.isfinite(ref_dist)
+        np.testing.assert_array_equal(np.isfinite(dist), found)
+        np.testing.assert_allclose(dist[found], ref_dist[found], rtol=1e-12)
+        np.testing.assert_array_equal(idx[found], ref_idx[found])
+    # rows beyond the size given make room for themselves
+    dist, idx = cache.query(rng.uniform(0, 1, (2, 3)), np.array([5, 900]))
+    assert cache.size == 901 and len(dist) == 2
+
+
+@pytest.mark.parametrize("d_max", [0.03, 0.3])
+def test_class_neighbours_from_the_geometric_cache_are_exact(rng, d_max):
+    """The geometric cache's candidates answer class queries where they decide them (most
+    rows: a point's neighbours are mostly of its class), the same as the class's tree;
+    Semantic-ICP's E-step gives the same pairs and weights with them as without."""
+    from estimation.registration.correspondences import NeighbourCache
+
+    c = 4
+    target = rng.uniform(0, 1, (4000, 3))
+    labels = (target[:, 0] > 0.5).astype(np.int64) + 2 * (target[:, 1] > 0.5)
+    index = SemanticIndex(target, np.eye(c)[labels])
+    geometric = NeighbourCache(cKDTree(target), d_max, 8, 900)
+    points = rng.uniform(0, 1, (900, 3))
+    want = (points[:, 0] > 0.5).astype(np.int64) + 2 * (points[:, 1] > 0.5)
+    want[::10] = rng.integers(0, c, 90)  # wrong labels: their class lies further away
+    probs = np.eye(c)[want]
+    caches_with, caches_without = {}, {}
+    resolved = []
+    for step in (0.0, 1e-3, 1e-2, 1e-4):
+        points = points + rng.normal(0, step, points.shape)
+        geometric.query(points)
+        dist, idx, unresolved = geometric.nearest_of_class(points, np.arange(900),
+                                                           index.labels, want)
+        resolved.append(1.0 - unresolved.mean())
+        for k in range(c):
+            rows = np.flatnonzero((want == k) & ~unresolved)
+            ref_dist, ref_j = index.trees[k].query(points[rows], distance_upper_bound=d_max)
+            found = np.isfinite(ref_dist)
+            np.testing.assert_array_equal(np.isfinite(dist[rows]), found)
+            np.testing.assert_allclose(dist[rows][found], ref_dist[found], rtol=1e-12)
+            np.testing.assert_array_equal(idx[rows][found], index.members[k][ref_j[found]])
+        nearest = geometric.query(points)
+        kwargs = dict(residual_sigma=0.01, nearest=nearest, posterior=True, label_noise=0.1)
+        fast = semantic_correspondences(points, probs, index, d_max, caches=caches_with,
+                                        geometric=geometric, **kwargs)
+        plain = semantic_correspondences(points, probs, index, d_max, caches=caches_without,
+                                         **kwargs)
+        for name in ("source_idx", "target_idx"):
+            np.testing.assert_array_equal(getattr(fast, name), getattr(plain, name))
+        np.testing.assert_allclose(fast.weights, plain.weights, rtol=1e-12)
+    assert min(resolved) > 0.6
+
+
 def test_lazy_covariances_equal_the_full_computation(rng):
     from scipy.spatial import cKDTree
 

@@ -177,3 +177,47 @@ def test_same_voxel_matching_is_far_more_accurate_on_a_real_office_map(centroid_
 def test_same_voxel_matching_is_no_worse_on_a_real_kinect_room(centroid_room):
     same, nearest = _same_and_nearest(centroid_room("tum", 10))
     assert np.median(same) < 1.15 * np.median(nearest), (same, nearest)
+
+
+@pytest.mark.parametrize("dense", [True, False])
+def test_same_cell_matches_the_cell_lookup(rng, dense):
+    """The one-pass kernel gives the pairs of the cell lookup: each flagged pair's source
+    point, moved, matched to its own cell's map point (of the target's label, with labels),
+    distances recomputed, others untouched; with the dense table and with the sorted
+    cells."""
+    from dataclasses import replace
+
+    from estimation.registration.correspondences import Correspondences
+
+    room = thick_room(rng)
+    map_points = centroids(room, 0.03, np.array([0.011, -0.007, 0.02]))
+    grid = voxel_grid(map_points)
+    if not dense:
+        grid = replace(grid, table=None)
+    labels = rng.integers(0, 3, len(map_points)).astype(np.int64)
+    source = room[rng.choice(len(room), 3000)] + rng.normal(scale=0.01, size=(3000, 3))
+    T = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.01, -0.02, 0.005), [0.01, 0.0, -0.01]).matrix()
+    source_idx = np.arange(3000)
+    target_idx = rng.integers(0, len(map_points), 3000)
+    corr = Correspondences(source_idx, target_idx, rng.uniform(0, 1, 3000),
+                           rng.uniform(0, 0.1, 3000), 3000)
+    aligned = rng.random(3000) < 0.7
+    moved = (source @ T[:3, :3].T + T[:3, 3])
+    hit, rows = grid.lookup(moved)
+    for with_labels in (False, True):
+        out = grid.same_cell(T, source, corr, aligned, map_points,
+                             labels if with_labels else None)
+        move = aligned & hit
+        if with_labels:
+            move &= labels[np.maximum(rows, 0)] == labels[target_idx]
+        expected = np.where(move, rows, target_idx)
+        assert move.sum() > 200
+        # (a point within a hair of a cell wall: the one-pass transform may round across it)
+        assert np.mean(out.target_idx == expected) > 0.999
+        same = out.target_idx == expected
+        np.testing.assert_allclose(
+            out.distances[same & move],
+            np.linalg.norm(map_points[expected] - moved, axis=1)[same & move], rtol=1e-12)
+        np.testing.assert_array_equal(out.distances[~move & same], corr.distances[~move & same])
+        np.testing.assert_array_equal(out.weights, corr.weights)
+        np.testing.assert_array_equal(out.source_idx, corr.source_idx)

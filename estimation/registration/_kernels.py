@@ -313,25 +313,28 @@ def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarra
 
 
 @numba.njit(cache=True)
-def cached_nearest(points, anchor, reach, candidates, target, d_max):
+def cached_nearest(points, rows, anchor, reach, candidates, target, d_max):
     """Nearest cached candidate of each point within d_max (inf / -1 when none), and the
-    rows whose displacement from their anchor exceeds ``reach`` (stale: query again)."""
-    n, k = candidates.shape
+    points whose displacement from their row's anchor exceeds its ``reach`` (stale: query
+    again; a negative reach: never queried). ``rows``: each point's row of the cache."""
+    n = points.shape[0]
+    k = candidates.shape[1]
     m_target = target.shape[0]
     dist = np.full(n, np.inf)
     idx = np.full(n, -1, dtype=np.int64)
     stale = np.zeros(n, dtype=np.bool_)
     d2max = d_max * d_max
     for m in range(n):
+        r = rows[m]
         px, py, pz = points[m, 0], points[m, 1], points[m, 2]
-        dx, dy, dz = px - anchor[m, 0], py - anchor[m, 1], pz - anchor[m, 2]
-        if not dx * dx + dy * dy + dz * dz <= reach[m] * reach[m] or reach[m] < 0.0:
+        dx, dy, dz = px - anchor[r, 0], py - anchor[r, 1], pz - anchor[r, 2]
+        if not dx * dx + dy * dy + dz * dz <= reach[r] * reach[r] or reach[r] < 0.0:
             stale[m] = True
             continue
         best = np.inf
         best_j = -1
         for j in range(k):
-            q = candidates[m, j]
+            q = candidates[r, j]
             if q >= m_target:  # no more neighbours within the query radius
                 break
             ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
@@ -343,6 +346,55 @@ def cached_nearest(points, anchor, reach, candidates, target, d_max):
             dist[m] = np.sqrt(best)
             idx[m] = best_j
     return dist, idx, stale
+
+
+@numba.njit(cache=True)
+def class_cached_nearest(points, rows, anchor, bound, reach, candidates, target, labels, want,
+                         d_max):
+    """The nearest target point labelled ``want[m]`` within d_max (inf / -1 when none) of each
+    point, from a geometric cache's candidates where they decide it, and the points where they
+    do not (unresolved: ask the class's own tree).
+
+    A row's candidates are its k nearest target points at its anchor, every other one at
+    least ``bound`` from there; after moving by delta, every other one is at least
+    ``bound - delta`` away. So the nearest candidate of the class is the class's nearest
+    where it is closer than that, and none of the class lies within d_max where no candidate
+    does and ``bound - delta > d_max``.
+    """
+    n = points.shape[0]
+    k = candidates.shape[1]
+    m_target = target.shape[0]
+    dist = np.full(n, np.inf)
+    idx = np.full(n, -1, dtype=np.int64)
+    unresolved = np.zeros(n, dtype=np.bool_)
+    for m in range(n):
+        r = rows[m]
+        if reach[r] < 0.0:  # never queried
+            unresolved[m] = True
+            continue
+        px, py, pz = points[m, 0], points[m, 1], points[m, 2]
+        dx, dy, dz = px - anchor[r, 0], py - anchor[r, 1], pz - anchor[r, 2]
+        lower = bound[r] - np.sqrt(dx * dx + dy * dy + dz * dz)
+        best = np.inf
+        best_j = -1
+        for j in range(k):
+            q = candidates[r, j]
+            if q >= m_target:
+                break
+            if labels[q] != want[m]:
+                continue
+            ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
+            d2 = ex * ex + ey * ey + ez * ez
+            if d2 < best:
+                best = d2
+                best_j = q
+        if best_j >= 0 and lower > 0.0 and best < lower * lower:
+            if best <= d_max * d_max:
+                dist[m] = np.sqrt(best)
+                idx[m] = best_j
+        elif not lower > d_max:
+            unresolved[m] = True
+    return dist, idx, unresolved
 
 
 @numba.njit(cache=True)
@@ -396,14 +448,16 @@ def _pair_arrays(count):
 
 
 @numba.njit(cache=True)
-def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target, rank_dist,
-                        classes, source_probs, target_probs, label_noise):
+def semantic_candidates(nearest, nearest_dist, order, rank_target, rank_dist,
+                        classes, source_probs, target_probs, label_noise, sigma):
     """Semantic-ICP's candidate list: the geometric nearest neighbours (``nearest`` >= 0),
     then for each rank and each class of ``classes`` in turn the class candidates
     (``rank_target`` >= 0) that are not that nearest neighbour, each block in row order;
-    their priors (label agreements, with ``label_noise``). Returns (source rows, target
-    rows, distances, priors)."""
+    their scores: the label agreement (with ``label_noise``; the nearest neighbour's summed
+    over the classes) times the Gaussian residual likelihood exp(-d^2 / (2 sigma^2)).
+    Returns (source rows, target rows, distances, scores)."""
     n, top = order.shape
+    n_classes = source_probs.shape[1]
     count = 0
     for i in range(n):
         if nearest[i] >= 0:
@@ -416,8 +470,12 @@ def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target
     src, tgt, dist, prior = _pair_arrays(count)
     m = 0
     for i in range(n):
-        if nearest[i] >= 0:
-            src[m], tgt[m], dist[m], prior[m] = i, nearest[i], nearest_dist[i], nearest_prior[i]
+        t = nearest[i]
+        if t >= 0:
+            agreement = 0.0
+            for c in range(n_classes):
+                agreement += source_probs[i, c] * target_probs[t, c]
+            src[m], tgt[m], dist[m], prior[m] = i, t, nearest_dist[i], agreement
             m += 1
     # each rank's candidates grouped by class (each class in row order), then written class
     # by class in the order of ``classes``
@@ -434,11 +492,13 @@ def semantic_candidates(nearest, nearest_dist, nearest_prior, order, rank_target
                 src[m], tgt[m], dist[m] = i, t, rank_dist[rank, i]
                 prior[m] = source_probs[i, c] * target_probs[t, c]
                 m += 1
-    if label_noise > 0.0:
-        keep = 1.0 - label_noise
-        floor = label_noise / source_probs.shape[1]
-        for m in range(count):
+    keep = 1.0 - label_noise
+    floor = label_noise / n_classes
+    for m in range(count):
+        if label_noise > 0.0:
             prior[m] = keep * prior[m] + floor
+        z = dist[m] / sigma
+        prior[m] *= np.exp(-0.5 * z * z)
     return src, tgt, dist, prior
 
 
@@ -464,3 +524,41 @@ def normalise_keep(src, tgt, omega, dist, n, posterior, min_weight):
             out_src[k], out_tgt[k], out_w[k], out_d[k] = src[m], tgt[m], omega[m], dist[m]
             k += 1
     return out_src, out_tgt, out_w, out_d
+
+
+@numba.njit(cache=True)
+def same_voxel_pairs(T, source, source_idx, target_idx, distances, aligned, target, origin,
+                     pitch, lo, dims, table, cells, cell_rows, labels, check_labels):
+    """Same-voxel matching of the pairs flagged ``aligned``: the source point (moved by T)
+    is matched to its own cell's map point where the cell holds one (the dense ``table`` of
+    the map's box when it has rows, else a binary search of the sorted ``cells``), of the
+    pair's target's label where ``check_labels``. Returns the new (target rows, distances)."""
+    m = source_idx.shape[0]
+    new_target = target_idx.copy()
+    new_dist = distances.copy()
+    n_cells = cells.shape[0]
+    dense = table.shape[0] > 0
+    for p in range(m):
+        if not aligned[p]:
+            continue
+        s = source_idx[p]
+        x = T[0, 0] * source[s, 0] + T[0, 1] * source[s, 1] + T[0, 2] * source[s, 2] + T[0, 3]
+        y = T[1, 0] * source[s, 0] + T[1, 1] * source[s, 1] + T[1, 2] * source[s, 2] + T[1, 3]
+        z = T[2, 0] * source[s, 0] + T[2, 1] * source[s, 1] + T[2, 2] * source[s, 2] + T[2, 3]
+        k0 = np.int64(np.floor((x - origin[0]) / pitch)) - lo[0]
+        k1 = np.int64(np.floor((y - origin[1]) / pitch)) - lo[1]
+        k2 = np.int64(np.floor((z - origin[2]) / pitch)) - lo[2]
+        if k0 < 0 or k1 < 0 or k2 < 0 or k0 >= dims[0] or k1 >= dims[1] or k2 >= dims[2]:
+            continue
+        key = (k0 * dims[1] + k1) * dims[2] + k2
+        if dense:
+            row = np.int64(table[key])
+        else:
+            pos = min(np.searchsorted(cells, key), n_cells - 1)
+            row = cell_rows[pos] if cells[pos] == key else -1
+        if row < 0 or (check_labels and labels[row] != labels[target_idx[p]]):
+            continue
+        ex, ey, ez = target[row, 0] - x, target[row, 1] - y, target[row, 2] - z
+        new_target[p] = row
+        new_dist[p] = np.sqrt(ex * ex + ey * ey + ez * ez)
+    return new_target, new_dist

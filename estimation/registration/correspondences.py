@@ -313,6 +313,27 @@ class VoxelGrid:
         hit = inside & (self.cells[pos] == key)
         return hit, np.where(hit, self.rows[pos], -1)
 
+    def same_cell(self, T: np.ndarray, source: np.ndarray, corr: Correspondences,
+                  aligned: np.ndarray, target: np.ndarray, labels: np.ndarray | None = None
+                  ) -> Correspondences:
+        """Return ``corr`` with each pair flagged ``aligned`` matched to the map point of the
+        cell its source point (``source`` moved by ``T``) lies in, where that cell holds one
+        (and, with target ``labels``, of the pair's target's label); distances updated,
+        weights kept. (One pass, as :meth:`lookup`; the rooms' 150k-point sources spent
+        18 ms an iteration here in numpy.)"""
+        table = _NO_CELLS if self.table is None else self.table
+        target_idx, distances = _kernels.same_voxel_pairs(
+            np.ascontiguousarray(T, dtype=float), source, corr.source_idx, corr.target_idx,
+            corr.distances, np.ascontiguousarray(aligned, dtype=bool), target, self.origin,
+            float(self.pitch), self.lo, self.dims, table, self.cells, self.rows,
+            _NO_LABELS if labels is None else labels, labels is not None)
+        return Correspondences(corr.source_idx, target_idx, corr.weights, distances,
+                               corr.n_source)
+
+
+_NO_CELLS = np.zeros(0, dtype=np.int32)
+_NO_LABELS = np.zeros(0, dtype=np.int64)
+
 
 def voxel_grid(points: np.ndarray, tree: cKDTree | None = None) -> VoxelGrid | None:
     """Return the grid of a voxel-centroid map (one point per cell, the mean of the cell's
@@ -429,16 +450,17 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 def nearest_correspondences(source_in_target: np.ndarray, target_tree: cKDTree,
-                            d_max: float, cache: NeighbourCache | None = None
-                            ) -> Correspondences:
+                            d_max: float, cache: NeighbourCache | None = None,
+                            rows: np.ndarray | None = None) -> Correspondences:
     """Return nearest-neighbour pairs closer than ``d_max`` (ICP's omega_i of eq. (2)).
 
     With a :class:`NeighbourCache` (built for this ``d_max``) the identical pairs come from
-    cached candidates, re-querying only the points that moved too far.
+    cached candidates, re-querying only the points that moved too far; ``rows``: the cache's
+    rows of the points (all, in order: None).
     """
     n = len(source_in_target)
     if cache is not None:
-        dist, idx = cache.query(source_in_target)
+        dist, idx = cache.query(source_in_target, rows)
     else:
         dist, idx = target_tree.query(source_in_target, k=1, distance_upper_bound=d_max,
                                       workers=_workers(n))
@@ -450,53 +472,95 @@ def nearest_correspondences(source_in_target: np.ndarray, target_tree: cKDTree,
 class NeighbourCache:
     """Exact nearest neighbours within ``d_max`` for slowly moving points, from cached candidates.
 
-    Each point keeps its ``k`` nearest target points within ``2 d_max`` found at an anchor
-    position (distances d_1 <= ... <= d_k; d_k := 2 d_max when fewer exist). After moving by
-    delta, every other target point is farther than ``d_k - delta``, so the candidates still
-    hold the answer while ``d_1 + delta <= d_k - delta`` (the nearest is a candidate) or
-    ``d_k - delta > d_max`` (nothing else lies within d_max). Near convergence ICP moves the
-    source by far less than that, so the queries (the largest per-iteration cost) become
-    a candidate scan; points that fail the test are queried again.
+    Each row (a source point) keeps its ``k`` nearest target points within ``2 d_max`` found
+    at an anchor position (distances d_1 <= ... <= d_k; d_k := 2 d_max when fewer exist: the
+    row's ``bound``, every other target point is at least that far from the anchor). After
+    moving by delta, every other target point is farther than ``d_k - delta``, so the
+    candidates still hold the answer while ``d_1 + delta <= d_k - delta`` (the nearest is a
+    candidate) or ``d_k - delta > d_max`` (nothing else lies within d_max). Near convergence
+    ICP moves the source by far less than that, so the queries (the largest per-iteration
+    cost) become a candidate scan; points that fail the test are queried again.
+
+    ``size``: the rows of the cache (the source's points), for queries of some of them
+    (:meth:`query`'s ``rows``); without it the first query's points are the rows.
     """
 
-    def __init__(self, tree: cKDTree, d_max: float, k: int = 8):
+    def __init__(self, tree: cKDTree, d_max: float, k: int = 8, size: int | None = None):
         self.tree = tree
         self.points = np.ascontiguousarray(tree.data, dtype=float)
         self.d_max = float(d_max)
         self.k = int(min(max(k, 2), tree.n))
+        self.size = size
         self.anchor: np.ndarray | None = None
         self.candidates: np.ndarray | None = None
         self.reach: np.ndarray | None = None
+        self.bound: np.ndarray | None = None
+        if size is not None:
+            self._allocate(size)
 
-    def _refresh(self, points: np.ndarray, rows: np.ndarray | None) -> None:
-        sel = points if rows is None else points[rows]
-        radius = 2.0 * self.d_max
-        dist, idx = self.tree.query(sel, k=self.k, distance_upper_bound=radius,
-                                    workers=_workers(len(sel), self.k))
-        dk = np.minimum(dist[:, -1], radius)
-        # how far a point may move before its candidates can miss the answer
-        reach = np.maximum(dk - self.d_max, 0.5 * (dk - dist[:, 0]))
-        idx = np.ascontiguousarray(idx, dtype=np.int64)
+    def _allocate(self, size: int) -> None:
+        """Room for ``size`` rows, those never queried with a negative reach (stale) and no
+        candidates; the rows there were are kept."""
+        old = 0 if self.anchor is None else len(self.anchor)
+        grown = (np.zeros((size, 3)), np.full((size, self.k), len(self.points), np.int64),
+                 np.full(size, -1.0), np.zeros(size))
+        if old:
+            for new, kept in zip(grown, (self.anchor, self.candidates, self.reach, self.bound)):
+                new[:old] = kept[:size]
+        self.anchor, self.candidates, self.reach, self.bound = grown
+        self.size = size
+
+    def _rows(self, points: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
+        """The cache rows of ``points``, room made for them."""
         if rows is None:
-            self.anchor, self.candidates, self.reach = sel.copy(), idx, reach
-        else:
-            self.anchor[rows], self.candidates[rows], self.reach[rows] = sel, idx, reach
+            if self.anchor is None or self.size != len(points):
+                self.anchor = None  # other points: the rows start again
+                self._allocate(len(points))
+            return np.arange(len(points))
+        rows = np.ascontiguousarray(rows, dtype=np.int64)
+        if len(rows) and (self.anchor is None or rows.max() >= self.size):
+            self._allocate(max(int(rows.max()) + 1, self.size or 0))
+        return rows
 
-    def query(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Return (distance, index) of each point's nearest target point; inf beyond d_max."""
+    def _refresh(self, points: np.ndarray, rows: np.ndarray) -> None:
+        """Query the tree for ``points``, the positions of the cache's ``rows``."""
+        radius = 2.0 * self.d_max
+        dist, idx = self.tree.query(points, k=self.k, distance_upper_bound=radius,
+                                    workers=_workers(len(points), self.k))
+        dk = np.minimum(dist[:, -1], radius)
+        self.anchor[rows], self.candidates[rows], self.bound[rows] = points, idx, dk
+        # how far a point may move before its candidates can miss the answer
+        self.reach[rows] = np.maximum(dk - self.d_max, 0.5 * (dk - dist[:, 0]))
+
+    def query(self, points: np.ndarray, rows: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+        """Return (distance, index) of each point's nearest target point; inf beyond d_max.
+        ``rows``: the cache's rows of the points (all, in order: None)."""
         points = np.ascontiguousarray(points, dtype=float)
-        if self.anchor is None or len(self.anchor) != len(points):
-            self._refresh(points, None)
-        dist, idx, stale = _kernels.cached_nearest(points, self.anchor, self.reach,
+        rows = self._rows(points, rows)
+        dist, idx, stale = _kernels.cached_nearest(points, rows, self.anchor, self.reach,
                                                    self.candidates, self.points, self.d_max)
         stale = np.nonzero(stale)[0]
         if len(stale):
-            self._refresh(points, stale)
-            d, i, _ = _kernels.cached_nearest(points[stale], self.anchor[stale],
-                                              self.reach[stale], self.candidates[stale],
-                                              self.points, self.d_max)
+            self._refresh(points[stale], rows[stale])
+            d, i, _ = _kernels.cached_nearest(points[stale], rows[stale], self.anchor,
+                                              self.reach, self.candidates, self.points,
+                                              self.d_max)
             dist[stale], idx[stale] = d, i
         return dist, idx
+
+    def nearest_of_class(self, points: np.ndarray, rows: np.ndarray, labels: np.ndarray,
+                         want: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Return (distance, index, unresolved) of each point's nearest target point labelled
+        ``want`` (target ``labels``) within d_max, from the candidates of its row where they
+        decide it (exactly; :func:`class_cached_nearest`); the others are ``unresolved``.
+        For rows just queried (:meth:`query`): the class of a point's geometric neighbours
+        is mostly its own, so most class queries need no tree."""
+        points = np.ascontiguousarray(points, dtype=float)
+        return _kernels.class_cached_nearest(
+            points, np.ascontiguousarray(rows, dtype=np.int64), self.anchor, self.bound,
+            self.reach, self.candidates, self.points, labels,
+            np.ascontiguousarray(want, dtype=np.int64), self.d_max)
 
 
 class ClassNeighbourCache(NeighbourCache):
@@ -511,32 +575,50 @@ class ClassNeighbourCache(NeighbourCache):
     the E-step 3x dearer).
     """
 
-    def __init__(self, index: SemanticIndex, d_max: float, classes: np.ndarray,
+    def __init__(self, index: SemanticIndex, d_max: float, classes: np.ndarray | None = None,
                  k: int = 8):
         self.index = index
         self.points = index.points
         self.d_max = float(d_max)
         self.k = int(max(k, 2))
-        self.classes = np.ascontiguousarray(classes, dtype=np.int64)
-        self.anchor: np.ndarray | None = None
-        self.candidates = np.full((len(self.classes), self.k), len(index.points), np.int64)
-        self.reach = np.full(len(self.classes), np.inf)
+        self.anchor = None
+        self.size = None
+        self.classes = np.zeros(0, np.int64)
+        if classes is not None:
+            self.classes = np.ascontiguousarray(classes, dtype=np.int64)
+            self._allocate(len(self.classes))
 
-    def _refresh(self, points: np.ndarray, rows: np.ndarray | None) -> None:
-        if rows is None:
-            self.anchor = np.empty_like(points)
-            rows = np.arange(len(points))
+    def _allocate(self, size: int) -> None:
+        super()._allocate(size)
+        grown = np.full(size, -1, np.int64)  # (-1: no class yet)
+        grown[:len(self.classes)] = self.classes[:size]
+        self.classes = grown
+
+    def query_classes(self, points: np.ndarray, rows: np.ndarray, classes: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`query` of the cache's ``rows``, each searching the tree of its entry in
+        ``classes`` (rows whose class changed are queried again)."""
+        rows = self._rows(points, rows)
+        changed = self.classes[rows] != classes
+        if changed.any():
+            self.classes[rows[changed]] = classes[changed]
+            self.reach[rows[changed]] = -1.0
+        return self.query(points, rows)
+
+    def _refresh(self, points: np.ndarray, rows: np.ndarray) -> None:
         index, radius = self.index, 2.0 * self.d_max
         starts, grouped = _kernels.group_rows(self.classes[rows], np.ones(len(rows), bool),
                                               index.n_classes)
         for c in np.nonzero(np.diff(starts))[0]:
             tree = index.trees.get(int(c))
-            sel = rows[grouped[starts[c]:starts[c + 1]]]
-            self.anchor[sel] = points[sel]
+            part = grouped[starts[c]:starts[c + 1]]
+            sel = rows[part]
+            self.anchor[sel] = points[part]
             if tree is None:  # no target point of this class: never a candidate
+                self.reach[sel] = np.inf
                 continue
             k = min(self.k, tree.n)
-            dist, idx = tree.query(points[sel], k=k, distance_upper_bound=radius,
+            dist, idx = tree.query(points[part], k=k, distance_upper_bound=radius,
                                    workers=_workers(len(sel), k))
             dist, idx = dist.reshape(len(sel), k), idx.reshape(len(sel), k)
             found = idx < tree.n
@@ -546,7 +628,7 @@ class ClassNeighbourCache(NeighbourCache):
             reach = np.maximum(dk - self.d_max, 0.5 * (dk - dist[:, 0]))
             if k == tree.n:  # where every point of the class is a candidate: never stale
                 reach[found.all(axis=1)] = np.inf
-            self.reach[sel] = reach
+            self.reach[sel], self.bound[sel] = reach, dk
 
 
 class SemanticIndex:
@@ -566,7 +648,7 @@ class SemanticIndex:
                 f"target probs must be (N, C) with N={len(points)}, got {probs.shape}")
         self.points = points
         self.probs = probs
-        labels = probs.argmax(axis=1)
+        labels = np.ascontiguousarray(probs.argmax(axis=1), dtype=np.int64)
         self.labels = labels
         self.members: dict[int, np.ndarray] = {}
         self.trees: dict[int, cKDTree] = {}
@@ -598,7 +680,9 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                              posterior: bool = False,
                              caches: dict | None = None,
                              label_noise: float = 0.0,
-                             order: np.ndarray | None = None) -> Correspondences:
+                             order: np.ndarray | None = None,
+                             rows: np.ndarray | None = None,
+                             geometric: NeighbourCache | None = None) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
     Candidates: for each source point and each of its ``top_classes`` most probable classes c,
@@ -630,9 +714,14 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
 
     ``order``: :func:`top_class_order` of ``source_probs``, when the caller keeps it.
 
-    ``caches``: a dict (kept by the caller for one ``d_max`` and one set of source points)
-    in which a :class:`ClassNeighbourCache` per rank is kept, so that repeated calls while
-    the source moves little return the same candidates from cached ones.
+    ``caches``: a dict (kept by the caller for one ``d_max`` and one source) in which a
+    :class:`ClassNeighbourCache` per rank is kept, so that repeated calls while the source
+    moves little return the same candidates from cached ones; ``rows``: the cache rows (the
+    caller's source rows) of the points (all, in order: None). ``geometric``: the
+    :class:`NeighbourCache` (same ``d_max``, same rows) that has just given ``nearest``:
+    a class candidate is taken from its candidates where they decide it
+    (:meth:`NeighbourCache.nearest_of_class`), from the class caches elsewhere; the same
+    pairs, without most of the class trees' queries.
     """
     n, c_src = source_probs.shape
     if c_src != index.n_classes:
@@ -644,50 +733,54 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         order = top_class_order(source_probs, top)
     nn = np.full(n, -1, dtype=np.int64)
     nn_dist = np.zeros(n)
-    nn_prior = np.zeros(n)
     if nearest is not None:
         dist, j = nearest
-        ok = dist <= d_max
-        rows = np.nonzero(ok)[0]
-        nn[rows] = j[ok]
-        nn_dist[rows] = dist[ok]
-        nn_prior[rows] = np.einsum("ij,ij->i", source_probs[rows], index.probs[nn[rows]])
+        near = dist <= d_max
+        nn[near] = j[near]
+        nn_dist[near] = dist[near]
     # each rank's class candidates, by row (-1: none within d_max, or not searched)
     rank_target = np.full((top, n), -1, dtype=np.int64)
     rank_dist = np.zeros((top, n))
     for rank in range(top):
         cls_of_point = np.ascontiguousarray(order[:, rank])
-        searched = np.ones(n, bool) if rank == 0 else \
-            source_probs[np.arange(n), cls_of_point] >= min_class_prob
-        if caches is not None:
-            rows = np.nonzero(searched)[0]
+        if rank == 0:  # every point
+            found, points, classes = np.arange(n), source_in_target, cls_of_point
+        else:  # where the class is probable enough
+            found = np.nonzero(source_probs[np.arange(n), cls_of_point] >= min_class_prob)[0]
+            points, classes = source_in_target[found], cls_of_point[found]
+        cache_rows = found if rows is None else rows[found]
+        dist = np.full(len(found), np.inf)
+        j = np.full(len(found), -1, dtype=np.int64)
+        ask = np.arange(len(found))  # the points the class trees (or their caches) answer
+        if geometric is not None and len(found):
+            dist, j, unresolved = geometric.nearest_of_class(points, cache_rows, index.labels,
+                                                             classes)
+            ask = np.nonzero(unresolved)[0]
+        if caches is not None and len(ask):
             cache = caches.get(rank)
-            if cache is None or not np.array_equal(cache.classes, cls_of_point[rows]):
-                # (another set of source rows: a cache holds one row's class for its life)
-                cache = caches[rank] = ClassNeighbourCache(index, d_max, cls_of_point[rows])
-            dist, j = cache.query(source_in_target[rows])
-            ok = np.isfinite(dist)
-            rank_target[rank, rows[ok]] = j[ok]
-            rank_dist[rank, rows[ok]] = dist[ok]
-            continue
-        starts, grouped = _kernels.group_rows(cls_of_point, searched, c_src)
-        for c, tree in index.trees.items():
-            rows = grouped[starts[c]:starts[c + 1]]
-            if len(rows) == 0:
-                continue
-            dist, j = tree.query(source_in_target[rows], k=1, distance_upper_bound=d_max,
-                                 workers=_workers(len(rows)))
-            ok = np.isfinite(dist)
-            rank_target[rank, rows[ok]] = index.members[c][j[ok]]
-            rank_dist[rank, rows[ok]] = dist[ok]
+            if cache is None:
+                cache = caches[rank] = ClassNeighbourCache(index, d_max)
+            dist[ask], j[ask] = cache.query_classes(points[ask], cache_rows[ask], classes[ask])
+        elif len(ask):
+            starts, grouped = _kernels.group_rows(classes[ask], np.ones(len(ask), bool), c_src)
+            for c, tree in index.trees.items():
+                part = ask[grouped[starts[c]:starts[c + 1]]]
+                if len(part) == 0:
+                    continue
+                d, q = tree.query(points[part], k=1,
+                                  distance_upper_bound=d_max, workers=_workers(len(part)))
+                ok = np.isfinite(d)
+                dist[part[ok]], j[part[ok]] = d[ok], index.members[c][q[ok]]
+        ok = np.isfinite(dist)
+        rank_target[rank, found[ok]] = j[ok]
+        rank_dist[rank, found[ok]] = dist[ok]
     # the candidate list: the nearest neighbours, then each rank's classes in turn (a class
     # candidate that is the point's nearest neighbour is not counted twice); eq. (5): the
-    # label agreement p(c|x_s) p(c|x_t) (with label noise) ...
-    src, tgt, dist, prior = _kernels.semantic_candidates(
-        nn, nn_dist, nn_prior, order, rank_target, rank_dist, index.classes, source_probs,
-        index.probs, float(label_noise))
-    # ... times the residual likelihood under T_old
-    omega = prior * np.exp(-0.5 * (dist / residual_sigma) ** 2)
+    # label agreement p(c|x_s) p(c|x_t) (with label noise) times the residual likelihood
+    # under T_old
+    src, tgt, dist, omega = _kernels.semantic_candidates(
+        nn, nn_dist, order, rank_target, rank_dist, index.classes, source_probs,
+        index.probs, float(label_noise), float(residual_sigma))
     src, tgt, omega, dist = _kernels.normalise_keep(src, tgt, omega, dist, n, bool(posterior),
                                                     float(min_weight))
     return Correspondences(src, tgt, omega, dist, n)

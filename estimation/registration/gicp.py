@@ -848,7 +848,7 @@ class Registration:
             # annealed: the source now moves little per iteration (see NeighbourCache)
             if self._cache is None or self._cache.d_max != d_max:
                 self._cache = self._prepared_cache(d_max) or NeighbourCache(
-                    self.target_tree, d_max, self.config.cached_neighbours)
+                    self.target_tree, d_max, self.config.cached_neighbours, len(self.source))
             cache = self._cache
         if rows is not None:
             moved = transform_points(T, self.source[rows])
@@ -856,7 +856,7 @@ class Registration:
                 corr = self._semantic(moved, self.source_probs[rows], d_max,
                                       cache, class_cached, rows)
             else:
-                corr = nearest_correspondences(moved, self.target_tree, d_max, cache)
+                corr = nearest_correspondences(moved, self.target_tree, d_max, cache, rows)
             corr = replace(corr, source_idx=rows[corr.source_idx])
         else:
             moved = transform_points(T, self.source)
@@ -937,21 +937,12 @@ class Registration:
             self._grid = 1  # not inside (yet): convergence decides (run())
         if not isinstance(self._grid, VoxelGrid):
             return corr
-        aligned = np.flatnonzero(self._grid_aligned(corr.target_idx, angle))
-        if not len(aligned):
+        aligned = self._grid_aligned(corr.target_idx, angle)
+        if not aligned.any():
             return corr
-        moved = transform_points(T, self.source[corr.source_idx[aligned]])
-        hit, rows = self._grid.lookup(moved)
-        if self.semantic:  # a class candidate keeps its class: the cell's centroid must share it
-            labels = self.semantic_index.labels
-            hit[hit] = labels[rows[hit]] == labels[corr.target_idx[aligned[hit]]]
-        aligned, moved, rows = aligned[hit], moved[hit], rows[hit]
-        target_idx = corr.target_idx.copy()
-        target_idx[aligned] = rows
-        distances = corr.distances.copy()
-        distances[aligned] = np.linalg.norm(self.target[rows] - moved, axis=1)
-        return Correspondences(corr.source_idx, target_idx, corr.weights, distances,
-                               corr.n_source)
+        # (a class candidate keeps its class: the cell's centroid must share it)
+        return self._grid.same_cell(T, self.source, corr, aligned, self.target,
+                                    self.semantic_index.labels if self.semantic else None)
 
     def crossing_information(self, sol: SolutionTerms) -> tuple[np.ndarray, float | None]:
         """Return (the (6, 6) score covariance of same-voxel matching's cell crossings, the
@@ -1091,7 +1082,7 @@ class Registration:
         sigma = d_max if self._sigma is None or not posterior else min(self._sigma, d_max)
         nearest, label_noise = None, 0.0
         if posterior:
-            nearest = cache.query(moved) if cache is not None else self.target_tree.query(
+            nearest = cache.query(moved, rows) if cache is not None else self.target_tree.query(
                 moved, k=1, distance_upper_bound=d_max, workers=_workers(len(moved)))
             if cfg.label_noise == "auto":
                 label_noise = self._label_noise(labels, nearest, d_max)
@@ -1101,7 +1092,8 @@ class Registration:
             moved, probs, self.semantic_index, d_max, residual_sigma=max(sigma, 1e-6),
             top_classes=cfg.top_classes, nearest=nearest, posterior=posterior,
             caches=self._class_caches(cache) if class_cached else None,
-            label_noise=label_noise, order=order)
+            label_noise=label_noise, order=order, rows=rows,
+            geometric=cache if nearest is not None else None)
         if posterior and len(corr):
             # M-step of the isotropic residual variance: sigma^2 = sum w d^2 / (3 sum w)
             w = corr.weights
@@ -1479,7 +1471,8 @@ class Registration:
         k = self.config.cached_neighbours
         if not k or (self._cache is not None and self._cache.d_max == d_max):
             return
-        self._forward_cache = d_max, self._prepare(NeighbourCache(self.target_tree, d_max, k),
+        self._forward_cache = d_max, self._prepare(NeighbourCache(self.target_tree, d_max, k,
+                                                                  len(self.source)),
                                                    transform_points(T, self.source),
                                                    self.source_cov, self.target_cov)
 
@@ -1504,7 +1497,8 @@ class Registration:
         if not (cfg.symmetric and cfg.covariance == "sandwich" and k
                 and self.quantisation_pitch is None and not isinstance(self._grid, VoxelGrid)):
             return  # no reverse direction will run (a voxel-centroid map: source inside)
-        self._reverse_cache = self._prepare(NeighbourCache(self.source_tree, d_max, k),
+        self._reverse_cache = self._prepare(NeighbourCache(self.source_tree, d_max, k,
+                                                           len(self.target)),
                                             transform_points(np.linalg.inv(T), self.target),
                                             self.target_cov, self.source_cov)
 
