@@ -130,8 +130,9 @@ def test_reverse_on_its_thread_gives_the_same_bits_as_inline(semantic, monkeypat
     assert threaded.diagnostic.direction_gap == inline.diagnostic.direction_gap
 
 
+@pytest.mark.parametrize("reach", [0.0, 1e9], ids=["cache-prepared", "covariances-only"])
 @pytest.mark.parametrize("semantic", [False, True], ids=["gicp", "semantic-icp"])
-def test_prepared_stages_give_the_same_bits(semantic, monkeypatch):
+def test_prepared_stages_give_the_same_bits(semantic, reach, monkeypatch):
     """The final stage's and the reverse direction's neighbour caches and covariances are
     prepared on the second thread while the iterations before them run, from poses before
     the solution (``PREPARE_STEP``), and so are the source's KD-tree, lattice test and
@@ -139,10 +140,13 @@ def test_prepared_stages_give_the_same_bits(semantic, monkeypatch):
     and each row's covariance does not depend on when or where it is computed, so pose,
     covariance and direction gap are bit-identical to a run that prepares nothing. (An
     annealing start off the solution, so that the preparations start from poses that still
-    move.)"""
+    move.) Both where the final stage's cache is prepared and where only its covariances are
+    (``PREPARED_REACH``: the cache's reach too short for the motion still to come)."""
     from test_registration import one_hot, random_pose
 
     import estimation.registration.gicp as gicp
+
+    monkeypatch.setattr(gicp, "PREPARED_REACH", reach)
 
     source, labels_s, target, labels_t, T_gt = make_pair(25, 3000, 0.005)
     probs = (one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9)) if semantic else (None,

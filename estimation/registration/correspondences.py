@@ -549,6 +549,14 @@ class NeighbourCache:
             dist[stale], idx[stale] = d, i
         return dist, idx
 
+    def outlasts(self, points: np.ndarray, motion: float, samples: int = 500) -> bool:
+        """True where the median reach of a strided sample of the rows (``points``: all of
+        them, in order), queried now, exceeds ``motion`` (m): most rows' candidates would
+        still hold their answer after moving that far."""
+        rows = np.arange(0, len(points), max(len(points) // samples, 1))
+        self.query(points[rows], rows if self.size == len(points) else None)
+        return bool(np.median(self.reach[rows]) > motion)
+
     def nearest_of_class(self, points: np.ndarray, rows: np.ndarray, labels: np.ndarray,
                          want: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Return (distance, index, unresolved) of each point's nearest target point labelled

@@ -564,6 +564,13 @@ PREPARE_STEP = 1e-2
 # KITTI cloud (8-neighbour queries and covariances on one thread, 30 ms) then has the time
 # it needs; 3 % less time on KITTI 0.1/0.15 m and the scan than at 1e-2 (3e-1: mixed)
 PREPARE_FORWARD_STEP = 1e-1
+# ... and its neighbour cache only where the candidates' median reach exceeds this many times
+# the last step's median point displacement (Registration._prepare). From there the points
+# moved on by 7-50 mm on KITTI (steps of 26-100 mm, reach 70-300 mm: 97-100 % of the rows
+# still valid) and by 20-250 mm in the rooms (steps of 15-100 mm, reach 11-25 mm: 0-7 %
+# valid, the rest queried again); the rooms' 150k-point sources took 7-14 % less time without
+# that cache, KITTI 3-8 % more
+PREPARED_REACH = 0.5
 # the iterations match through a neighbour cache once the last step (||Logmap||) is below
 # this, whatever the correspondence distance: before, most points move beyond their cached
 # candidates' reach, and re-querying them costs more than a plain query (k = 8 neighbours:
@@ -1250,7 +1257,7 @@ class Registration:
             if annealing:
                 if not prepared_forward and step < PREPARE_FORWARD_STEP:
                     prepared_forward = True
-                    self._prepare_forward(T_new, d_final)
+                    self._prepare_forward(T_new, d_final, self._motion(T, T_new))
                 if (cfg.anneal == "iteration" or step < cfg.tolerance or two_cycle
                         or stage_iterations >= cfg.stage_iterations):
                     d = max(d * cfg.decay, d_final)
@@ -1456,7 +1463,15 @@ class Registration:
             float(np.sqrt(np.mean(dist ** 2))), converged, reason, tuple(cost_log),
             self.method, time.perf_counter() - start, diagnostic, self._alpha)
 
-    def _prepare_forward(self, T: np.ndarray, d_max: float) -> None:
+    def _motion(self, T: np.ndarray, T_new: np.ndarray) -> float:
+        """The median distance (m) the source's points moved from ``T`` to ``T_new`` (a
+        strided sample of about 1000)."""
+        sample = self.source[::max(len(self.source) // 1000, 1)]
+        return float(np.median(np.linalg.norm(
+            transform_points(T_new, sample) - transform_points(T, sample), axis=1)))
+
+    def _prepare_forward(self, T: np.ndarray, d_max: float, motion: float | None = None
+                         ) -> None:
         """Start preparing the iterations at the final ``d_max`` from ``T`` (an annealing
         stage's pose once its steps have become small, ``PREPARE_FORWARD_STEP``) on the
         second thread, beside this stage's remaining iterations, which leave that core idle:
@@ -1467,6 +1482,10 @@ class Registration:
         and each row's covariance does not depend on when it is computed, so no result
         changes. (KITTI at 0.15 m: the cache and these covariances took 30-35 ms at the start
         of the final stage, on both cores.)
+
+        ``motion``: the last step's median point displacement (m). The pose moves on after
+        ``T``, and a cache whose candidates' reach is shorter than that would be queried again
+        almost whole (:meth:`_prepare`).
         """
         k = self.config.cached_neighbours
         if not k or (self._cache is not None and self._cache.d_max == d_max):
@@ -1474,7 +1493,9 @@ class Registration:
         self._forward_cache = d_max, self._prepare(NeighbourCache(self.target_tree, d_max, k,
                                                                   len(self.source)),
                                                    transform_points(T, self.source),
-                                                   self.source_cov, self.target_cov)
+                                                   self.source_cov, self.target_cov,
+                                                   None if motion is None
+                                                   else PREPARED_REACH * motion)
 
     def _prepared_cache(self, d_max: float) -> NeighbourCache | None:
         """The neighbour cache :meth:`_prepare_forward` made for ``d_max`` (waited for), if any."""
@@ -1504,18 +1525,33 @@ class Registration:
 
     def _prepare(self, cache: NeighbourCache, moved: np.ndarray,
                  moved_cov: np.ndarray | LazyCovariances,
-                 fixed_cov: np.ndarray | LazyCovariances) -> Future:
+                 fixed_cov: np.ndarray | LazyCovariances, motion: float | None = None
+                 ) -> Future:
         """Query ``cache`` with the ``moved`` points on the second thread, then compute the
         covariances of the pairs found (``moved_cov`` of the points, ``fixed_cov`` of their
-        neighbours). Return a future of the cache, set as soon as it is queried."""
+        neighbours). Return a future of the cache, set as soon as it is queried.
+
+        With ``motion`` (m, how far the points are expected to move before the cache is
+        used): where a sample of the cache's rows says that most of its candidates would be
+        stale by then (:meth:`NeighbourCache.outlasts`), no cache is made (the future's
+        result is None: its user queries its own) and the covariances' rows come from plain
+        nearest neighbours. (A room's 3 cm map: the candidates' reach was 11 mm, and 0-7 %
+        of the rows were still valid when the final stage began, 20-250 mm further on;
+        KITTI's 70-300 mm reach kept 97-100 %.)"""
         ready: Future = Future()
         stop = self._stop
 
         def prepare() -> None:
             try:
                 with queries_beside():  # this thread's queries beside the other's
-                    dist, nearest = cache.query(moved)
-                    ready.set_result(cache)
+                    if motion is None or cache.outlasts(moved, motion):
+                        dist, nearest = cache.query(moved)
+                        ready.set_result(cache)
+                    else:
+                        ready.set_result(None)
+                        dist, nearest = cache.tree.query(moved, k=1,
+                                                         distance_upper_bound=cache.d_max,
+                                                         workers=_workers(len(moved)))
                     ok = np.isfinite(dist)
                     for cov, rows in ((moved_cov, np.flatnonzero(ok)), (fixed_cov, nearest[ok])):
                         if isinstance(cov, LazyCovariances):
