@@ -217,9 +217,12 @@ def test_class_neighbours_from_the_geometric_cache_are_exact(rng, d_max):
     resolved = []
     for step in (0.0, 1e-3, 1e-2, 1e-4):
         points = points + rng.normal(0, step, points.shape)
-        geometric.query(points)
+        both = geometric.query_with_class(points, None, index.labels, want)
+        nearest = geometric.query(points)
         dist, idx, unresolved = geometric.nearest_of_class(points, np.arange(900),
                                                            index.labels, want)
+        for a, b in zip(both, (*nearest, dist, idx, unresolved)):  # one scan, the same
+            np.testing.assert_array_equal(a, b)
         resolved.append(1.0 - unresolved.mean())
         for k in range(c):
             rows = np.flatnonzero((want == k) & ~unresolved)

@@ -161,12 +161,18 @@ def test_the_wide_kernel_through_the_final_stage_ends_a_dense_slide(office, monk
     # stage (WIDE_FINAL_STAGE False) this start crawls along the room and runs out of
     # iterations 55 mm off (measured; Open3D GICP: 12 mm); with the wide kernel from the
     # final stage's 31st iteration until it converges, then the narrow one, it converges at
-    # 1.0 mm
+    # 1.0 mm. The final stage's extrapolation (EXTRAPOLATE) ends this slide too, without the
+    # wide kernel, in fewer iterations; with neither it runs out of them.
     points, labels, target = office
     source, T_gt, init, d0 = small_offset_start(points, labels, 17, 60000)
+    monkeypatch.setattr(gicp, "EXTRAPOLATE", False)
     done, _ = register_ours(source, target, init, (d0, D_FINAL))
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
     assert done.cauchy_alpha < 1.0  # it ended with the narrow kernel
     monkeypatch.setattr(gicp, "WIDE_FINAL_STAGE", False)
     slid, _ = register_ours(source, target, init, (d0, D_FINAL))
     assert not slid.converged and pose_error(slid.T, T_gt).t_err_m > 0.02
+    monkeypatch.setattr(gicp, "EXTRAPOLATE", True)
+    jumped, _ = register_ours(source, target, init, (d0, D_FINAL))
+    assert jumped.converged and pose_error(jumped.T, T_gt).t_err_m < 0.005
+    assert jumped.iterations < done.iterations

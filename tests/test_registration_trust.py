@@ -22,7 +22,7 @@ from test_registration import make_pair
 from benchmarks.registration import D_FINAL, OFFSETS, register_ours
 from benchmarks.registration_indoor import SOURCE_POINTS, half_room_source
 from estimation.errors import EstimationError
-from estimation.registration import Registration, RegistrationConfig, pose_error, register
+from estimation.registration import Registration, RegistrationConfig, gicp, pose_error, register
 from estimation.registration.metrics import offset_about_centroid
 
 
@@ -73,9 +73,13 @@ def test_the_wide_kernel_while_annealing_ends_the_slow_slides(office, seed, monk
     # round) these two starts crawled along the room, the cost falling a little every
     # iteration, and ended 25-48 mm off after 60 final iterations; a dense source (150k
     # points) slid into another basin or ran out of iterations in 3 of 12 starts on the
-    # benchmark's room. With cauchy_alpha while annealing they converge within 60.
+    # benchmark's room. With cauchy_alpha while annealing they converge within 60. (The
+    # final stage's extrapolation also ends these slides: off for the negative control.)
     points, labels, target = office
     source, T_gt, init, d0 = small_offset_start(points, labels, seed)
+    done, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=60)
+    assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
+    monkeypatch.setattr(gicp, "EXTRAPOLATE", False)
     done, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=60)
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
     update = Registration._update_alpha
@@ -99,3 +103,29 @@ def test_an_unconverged_iid_pair_is_not_trusted_and_the_converged_one_is():
 def test_bad_trust_gap_is_refused(value):
     with pytest.raises(EstimationError, match="trust_gap"):
         RegistrationConfig(trust_gap=value)
+
+
+def test_extrapolation_adds_the_rest_of_a_straight_creep_and_nothing_else():
+    """Two steps the same way, the second 0.75 of the first: the rest of the geometric
+    series (3 more such steps) is added at once and the next step starts afresh; a turn, a
+    longer step or the first step of a stage add nothing; the jump is capped."""
+    import gtsam
+
+    from estimation.registration.gicp import EXTRAPOLATE_MAX, _extrapolated
+
+    T = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.1, 0.2, 0.3), [1.0, 2.0, 3.0]).matrix()
+    last = np.array([1e-3, 0, 0, 2e-3, 1e-3, 0])
+
+    def stepped(xi):
+        return (gtsam.Pose3(T) * gtsam.Pose3.Expmap(xi)).matrix()
+
+    jumped, remembered = _extrapolated(T, stepped(0.75 * last), last)
+    np.testing.assert_allclose(jumped, stepped(0.75 * last * 4), atol=1e-12)
+    assert remembered is None
+    for xi, previous in ((0.75 * last, None), (1.2 * last, last),
+                         (np.array([0, 1e-3, 0, -2e-3, 1e-3, 0]), last)):
+        same, remembered = _extrapolated(T, stepped(xi), previous)
+        np.testing.assert_array_equal(same, stepped(xi))
+        np.testing.assert_allclose(remembered, xi, atol=1e-15)
+    capped, _ = _extrapolated(T, stepped(0.99 * last), last)
+    np.testing.assert_allclose(capped, stepped(0.99 * last * (1 + EXTRAPOLATE_MAX)), atol=1e-12)

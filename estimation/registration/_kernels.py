@@ -349,6 +349,61 @@ def cached_nearest(points, rows, anchor, reach, candidates, target, d_max):
 
 
 @numba.njit(cache=True)
+def cached_nearest_and_class(points, rows, anchor, bound, reach, candidates, target, labels,
+                             want, d_max):
+    """:func:`cached_nearest` and :func:`class_cached_nearest` in one scan of the candidates.
+    Returns (distance, index, stale, class distance, class index, unresolved); a stale point
+    is also unresolved (query it again, then ask both)."""
+    n = points.shape[0]
+    k = candidates.shape[1]
+    m_target = target.shape[0]
+    dist = np.full(n, np.inf)
+    idx = np.full(n, -1, dtype=np.int64)
+    stale = np.zeros(n, dtype=np.bool_)
+    class_dist = np.full(n, np.inf)
+    class_idx = np.full(n, -1, dtype=np.int64)
+    unresolved = np.zeros(n, dtype=np.bool_)
+    d2max = d_max * d_max
+    for m in range(n):
+        r = rows[m]
+        px, py, pz = points[m, 0], points[m, 1], points[m, 2]
+        dx, dy, dz = px - anchor[r, 0], py - anchor[r, 1], pz - anchor[r, 2]
+        moved2 = dx * dx + dy * dy + dz * dz
+        if not moved2 <= reach[r] * reach[r] or reach[r] < 0.0:
+            stale[m] = True
+            unresolved[m] = True
+            continue
+        best = np.inf
+        best_j = -1
+        best_c = np.inf
+        best_cj = -1
+        c = want[m]
+        for j in range(k):
+            q = candidates[r, j]
+            if q >= m_target:  # no more neighbours within the query radius
+                break
+            ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
+            d2 = ex * ex + ey * ey + ez * ez
+            if d2 < best:
+                best = d2
+                best_j = q
+            if labels[q] == c and d2 < best_c:
+                best_c = d2
+                best_cj = q
+        if best <= d2max:
+            dist[m] = np.sqrt(best)
+            idx[m] = best_j
+        lower = bound[r] - np.sqrt(moved2)
+        if best_cj >= 0 and lower > 0.0 and best_c < lower * lower:
+            if best_c <= d2max:
+                class_dist[m] = np.sqrt(best_c)
+                class_idx[m] = best_cj
+        elif not lower > d_max:
+            unresolved[m] = True
+    return dist, idx, stale, class_dist, class_idx, unresolved
+
+
+@numba.njit(cache=True)
 def class_cached_nearest(points, rows, anchor, bound, reach, candidates, target, labels, want,
                          d_max):
     """The nearest target point labelled ``want[m]`` within d_max (inf / -1 when none) of each

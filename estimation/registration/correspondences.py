@@ -549,6 +549,26 @@ class NeighbourCache:
             dist[stale], idx[stale] = d, i
         return dist, idx
 
+    def query_with_class(self, points: np.ndarray, rows: np.ndarray | None, labels: np.ndarray,
+                         want: np.ndarray) -> tuple[np.ndarray, ...]:
+        """:meth:`query` and :meth:`nearest_of_class` in one scan of the candidates: returns
+        (distance, index, class distance, class index, unresolved)."""
+        points = np.ascontiguousarray(points, dtype=float)
+        rows = self._rows(points, rows)
+        want = np.ascontiguousarray(want, dtype=np.int64)
+        dist, idx, stale, cdist, cidx, unresolved = _kernels.cached_nearest_and_class(
+            points, rows, self.anchor, self.bound, self.reach, self.candidates, self.points,
+            labels, want, self.d_max)
+        stale = np.nonzero(stale)[0]
+        if len(stale):
+            self._refresh(points[stale], rows[stale])
+            d, i, _, cd, ci, u = _kernels.cached_nearest_and_class(
+                points[stale], rows[stale], self.anchor, self.bound, self.reach,
+                self.candidates, self.points, labels, want[stale], self.d_max)
+            dist[stale], idx[stale], cdist[stale], cidx[stale], unresolved[stale] = \
+                d, i, cd, ci, u
+        return dist, idx, cdist, cidx, unresolved
+
     def outlasts(self, points: np.ndarray, motion: float, samples: int = 500) -> bool:
         """True where the median reach of a strided sample of the rows (``points``: all of
         them, in order), queried now, exceeds ``motion`` (m): most rows' candidates would
@@ -690,7 +710,8 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
                              label_noise: float = 0.0,
                              order: np.ndarray | None = None,
                              rows: np.ndarray | None = None,
-                             geometric: NeighbourCache | None = None) -> Correspondences:
+                             geometric: NeighbourCache | None = None,
+                             first_class: tuple | None = None) -> Correspondences:
     """Return class-conditioned nearest neighbours and their EM weights omega_k (eq. (5)-(8)).
 
     Candidates: for each source point and each of its ``top_classes`` most probable classes c,
@@ -729,7 +750,9 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     :class:`NeighbourCache` (same ``d_max``, same rows) that has just given ``nearest``:
     a class candidate is taken from its candidates where they decide it
     (:meth:`NeighbourCache.nearest_of_class`), from the class caches elsewhere; the same
-    pairs, without most of the class trees' queries.
+    pairs, without most of the class trees' queries. ``first_class``: that answer for the
+    most probable classes, when the caller has it (:meth:`NeighbourCache.query_with_class`,
+    the same scan as ``nearest``).
     """
     n, c_src = source_probs.shape
     if c_src != index.n_classes:
@@ -760,7 +783,10 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
         dist = np.full(len(found), np.inf)
         j = np.full(len(found), -1, dtype=np.int64)
         ask = np.arange(len(found))  # the points the class trees (or their caches) answer
-        if geometric is not None and len(found):
+        if rank == 0 and first_class is not None:
+            dist, j, unresolved = first_class  # (fresh arrays: filled in below)
+            ask = np.nonzero(unresolved)[0]
+        elif geometric is not None and len(found):
             dist, j, unresolved = geometric.nearest_of_class(points, cache_rows, index.labels,
                                                              classes)
             ask = np.nonzero(unresolved)[0]

@@ -513,7 +513,8 @@ class SolutionTerms:
     def shift_sensitivity(self) -> np.ndarray:
         """Return (M, 6, 3) w_k J_k^T U_k^T: the change of each score per metre of shift of
         its target point (along x, y, z)."""
-        return self.w[:, None, None] * np.einsum("mki,mkj->mij", self.jacobians, self.whitening)
+        # (a batched matmul: np.einsum took 6x as long, 0.18 s for a 370k-point source)
+        return self.w[:, None, None] * (np.swapaxes(self.jacobians, 1, 2) @ self.whitening)
 
 
 def _as_points(points: np.ndarray, what: str) -> np.ndarray:
@@ -534,6 +535,30 @@ def _as_transform(T: np.ndarray | gtsam.Pose3 | None) -> np.ndarray:
     if T.shape != (4, 4) or not np.all(np.isfinite(T)):
         raise EstimationError(f"initial T must be a finite 4x4 matrix, got shape {T.shape}")
     return gtsam.Pose3(T).matrix()  # re-orthonormalises the rotation
+
+
+def _extrapolated(T: np.ndarray, T_new: np.ndarray, last: np.ndarray | None
+                  ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Return (the pose to go on from, the step to remember) after the Gauss-Newton step
+    ``T`` -> ``T_new``, given the ``last`` one (None: none to compare with).
+
+    Where the step points the way the last one did (cosine above EXTRAPOLATE_COSINE) and is
+    shorter by a ratio rho, ICP is creeping along a straight line with linearly shrinking
+    steps (the correspondences lag the pose); what remains of that geometric series,
+    rho / (1 - rho) steps (at most EXTRAPOLATE_MAX), is added at once, as Besl and McKay's
+    accelerated ICP (1992). The next step starts afresh (it measures the jump)."""
+    step = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new)))
+    if last is None:
+        return T_new, step
+    norm, norm_last = np.linalg.norm(step), np.linalg.norm(last)
+    if norm == 0.0 or norm_last == 0.0:
+        return T_new, step
+    cosine = float(step @ last) / (norm * norm_last)
+    rho = norm / norm_last
+    if cosine < EXTRAPOLATE_COSINE or rho >= 1.0:
+        return T_new, step
+    factor = min(rho / (1.0 - rho), EXTRAPOLATE_MAX)
+    return (gtsam.Pose3(T_new) * gtsam.Pose3.Expmap(factor * step)).matrix(), None
 
 
 def _rows_of(cov: np.ndarray | LazyCovariances, rows: np.ndarray) -> np.ndarray:
@@ -571,6 +596,15 @@ PREPARE_FORWARD_STEP = 1e-1
 # valid, the rest queried again); the rooms' 150k-point sources took 7-14 % less time without
 # that cache, KITTI 3-8 % more
 PREPARED_REACH = 0.5
+# the final stage's creep along a straight line is extrapolated (_extrapolated; False: not).
+# Inside a room's 3 cm map the final steps shrank by only 0.75-0.8 an iteration, 10-14 of them
+# from 6-12 mm off; extrapolated, 5-6 (in-process A/B, 8 starts at 150k points: time / Open3D
+# 0.62 -> 0.53 for GICP-SE(3), 0.86 -> 0.66 for Semantic-ICP, median error 0.97 -> 0.87 and
+# 1.02 -> 0.98 mm; at 15k points 4-10 % less time; KITTI and the scan split: the same
+# estimates, time within the noise)
+EXTRAPOLATE = True
+EXTRAPOLATE_COSINE = 0.99  # the two steps' directions agree within 8 deg
+EXTRAPOLATE_MAX = 4.0  # at most four more steps at once
 # the iterations match through a neighbour cache once the last step (||Logmap||) is below
 # this, whatever the correspondence distance: before, most points move beyond their cached
 # candidates' reach, and re-querying them costs more than a plain query (k = 8 neighbours:
@@ -1087,10 +1121,16 @@ class Registration:
         posterior = (cfg.semantic_estep == "posterior"
                      and d_max <= cfg.max_correspondence_distance * (1 + 1e-9))
         sigma = d_max if self._sigma is None or not posterior else min(self._sigma, d_max)
-        nearest, label_noise = None, 0.0
-        if posterior:
+        nearest, label_noise, first_class = None, 0.0, None
+        if posterior and cache is not None and class_cached:
+            # the nearest neighbours and the most probable class's from one candidate scan
+            dist, j, *first_class = cache.query_with_class(
+                moved, rows, self.semantic_index.labels, np.ascontiguousarray(order[:, 0]))
+            nearest = dist, j
+        elif posterior:
             nearest = cache.query(moved, rows) if cache is not None else self.target_tree.query(
                 moved, k=1, distance_upper_bound=d_max, workers=_workers(len(moved)))
+        if posterior:
             if cfg.label_noise == "auto":
                 label_noise = self._label_noise(labels, nearest, d_max)
             else:
@@ -1100,7 +1140,7 @@ class Registration:
             top_classes=cfg.top_classes, nearest=nearest, posterior=posterior,
             caches=self._class_caches(cache) if class_cached else None,
             label_noise=label_noise, order=order, rows=rows,
-            geometric=cache if nearest is not None else None)
+            geometric=cache if nearest is not None else None, first_class=first_class)
         if posterior and len(corr):
             # M-step of the isotropic residual variance: sigma^2 = sum w d^2 / (3 sum w)
             w = corr.weights
@@ -1215,6 +1255,7 @@ class Registration:
         # started
         prepared_forward = prepared_reverse = False
         step = np.inf  # the last Gauss-Newton step
+        last_step = None  # the final stage's last step (tangent vector), for _extrapolated
         for iterations in range(1, cfg.max_iterations + annealing_budget + 1):
             annealing = d > d_final * (1 + 1e-9)
             if not annealing:
@@ -1289,6 +1330,8 @@ class Registration:
                     continue
                 converged, reason = True, "converged (two-cycle of correspondence sets)"
                 break
+            if EXTRAPOLATE:
+                T_new, last_step = _extrapolated(T, T_new, last_step)
             T_prev, T = T, T_new
         return self._finish(T, d_final, converged, reason, iterations, cost_log, start)
 
