@@ -312,39 +312,64 @@ def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarra
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _answers(n):
+    """(distances inf, rows -1, flags False) of n points."""
+    return np.full(n, np.inf), np.full(n, -1, dtype=np.int64), np.zeros(n, dtype=np.bool_)
+
+
+@numba.njit(cache=True, inline="always")
+def _scan_candidates(points, m, candidates, r, target, labels, c):
+    """(squared distance, row) of the nearest of row ``r``'s cached candidates to point m,
+    and of the nearest labelled ``c`` (c < 0: none asked; -1 where none)."""
+    px, py, pz = points[m, 0], points[m, 1], points[m, 2]
+    best, best_j, best_c, best_cj = np.inf, -1, np.inf, -1
+    for j in range(candidates.shape[1]):
+        q = candidates[r, j]
+        if q >= target.shape[0]:  # no more neighbours within the query radius
+            break
+        ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
+        d2 = ex * ex + ey * ey + ez * ez
+        if d2 < best:
+            best, best_j = d2, q
+        if c >= 0 and labels[q] == c and d2 < best_c:
+            best_c, best_cj = d2, q
+    return best, best_j, best_c, best_cj
+
+
+@numba.njit(cache=True, inline="always")
+def _moved_squared(points, m, anchor, r):
+    dx, dy, dz = (points[m, 0] - anchor[r, 0], points[m, 1] - anchor[r, 1],
+                  points[m, 2] - anchor[r, 2])
+    return dx * dx + dy * dy + dz * dz
+
+
+@numba.njit(cache=True, inline="always")
+def _class_decided(best_c, best_cj, lower, d_max):
+    """(distance, row, unresolved) of the class's nearest from the candidates' best of the
+    class, every other target point at least ``lower`` away (see class_cached_nearest)."""
+    if best_cj >= 0 and lower > 0.0 and best_c < lower * lower:
+        if best_c <= d_max * d_max:
+            return np.sqrt(best_c), best_cj, False
+        return np.inf, -1, False
+    return np.inf, -1, not lower > d_max
+
+
 @numba.njit(cache=True)
 def cached_nearest(points, rows, anchor, reach, candidates, target, d_max):
     """Nearest cached candidate of each point within d_max (inf / -1 when none), and the
     points whose displacement from their row's anchor exceeds its ``reach`` (stale: query
     again; a negative reach: never queried). ``rows``: each point's row of the cache."""
     n = points.shape[0]
-    k = candidates.shape[1]
-    m_target = target.shape[0]
-    dist = np.full(n, np.inf)
-    idx = np.full(n, -1, dtype=np.int64)
-    stale = np.zeros(n, dtype=np.bool_)
-    d2max = d_max * d_max
+    dist, idx, stale = _answers(n)
     for m in range(n):
         r = rows[m]
-        px, py, pz = points[m, 0], points[m, 1], points[m, 2]
-        dx, dy, dz = px - anchor[r, 0], py - anchor[r, 1], pz - anchor[r, 2]
-        if not dx * dx + dy * dy + dz * dz <= reach[r] * reach[r] or reach[r] < 0.0:
+        if not _moved_squared(points, m, anchor, r) <= reach[r] * reach[r] or reach[r] < 0.0:
             stale[m] = True
             continue
-        best = np.inf
-        best_j = -1
-        for j in range(k):
-            q = candidates[r, j]
-            if q >= m_target:  # no more neighbours within the query radius
-                break
-            ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
-            d2 = ex * ex + ey * ey + ez * ez
-            if d2 < best:
-                best = d2
-                best_j = q
-        if best <= d2max:
-            dist[m] = np.sqrt(best)
-            idx[m] = best_j
+        best, best_j, _, _ = _scan_candidates(points, m, candidates, r, target, rows, -1)
+        if best <= d_max * d_max:
+            dist[m], idx[m] = np.sqrt(best), best_j
     return dist, idx, stale
 
 
@@ -352,54 +377,24 @@ def cached_nearest(points, rows, anchor, reach, candidates, target, d_max):
 def cached_nearest_and_class(points, rows, anchor, bound, reach, candidates, target, labels,
                              want, d_max):
     """:func:`cached_nearest` and :func:`class_cached_nearest` in one scan of the candidates.
-    Returns (distance, index, stale, class distance, class index, unresolved); a stale point
-    is also unresolved (query it again, then ask both)."""
+    Returns (distance, index, stale, class
+    distance, class index, unresolved); a stale point is also unresolved (query it again,
+    then ask both)."""
     n = points.shape[0]
-    k = candidates.shape[1]
-    m_target = target.shape[0]
-    dist = np.full(n, np.inf)
-    idx = np.full(n, -1, dtype=np.int64)
-    stale = np.zeros(n, dtype=np.bool_)
-    class_dist = np.full(n, np.inf)
-    class_idx = np.full(n, -1, dtype=np.int64)
-    unresolved = np.zeros(n, dtype=np.bool_)
-    d2max = d_max * d_max
+    dist, idx, stale = _answers(n)
+    class_dist, class_idx, unresolved = _answers(n)
     for m in range(n):
         r = rows[m]
-        px, py, pz = points[m, 0], points[m, 1], points[m, 2]
-        dx, dy, dz = px - anchor[r, 0], py - anchor[r, 1], pz - anchor[r, 2]
-        moved2 = dx * dx + dy * dy + dz * dz
+        moved2 = _moved_squared(points, m, anchor, r)
         if not moved2 <= reach[r] * reach[r] or reach[r] < 0.0:
-            stale[m] = True
-            unresolved[m] = True
+            stale[m] = unresolved[m] = True
             continue
-        best = np.inf
-        best_j = -1
-        best_c = np.inf
-        best_cj = -1
-        c = want[m]
-        for j in range(k):
-            q = candidates[r, j]
-            if q >= m_target:  # no more neighbours within the query radius
-                break
-            ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
-            d2 = ex * ex + ey * ey + ez * ez
-            if d2 < best:
-                best = d2
-                best_j = q
-            if labels[q] == c and d2 < best_c:
-                best_c = d2
-                best_cj = q
-        if best <= d2max:
-            dist[m] = np.sqrt(best)
-            idx[m] = best_j
-        lower = bound[r] - np.sqrt(moved2)
-        if best_cj >= 0 and lower > 0.0 and best_c < lower * lower:
-            if best_c <= d2max:
-                class_dist[m] = np.sqrt(best_c)
-                class_idx[m] = best_cj
-        elif not lower > d_max:
-            unresolved[m] = True
+        best, best_j, best_c, best_cj = _scan_candidates(points, m, candidates, r, target,
+                                                         labels, want[m])
+        if best <= d_max * d_max:
+            dist[m], idx[m] = np.sqrt(best), best_j
+        class_dist[m], class_idx[m], unresolved[m] = _class_decided(
+            best_c, best_cj, bound[r] - np.sqrt(moved2), d_max)
     return dist, idx, stale, class_dist, class_idx, unresolved
 
 
@@ -417,38 +412,16 @@ def class_cached_nearest(points, rows, anchor, bound, reach, candidates, target,
     does and ``bound - delta > d_max``.
     """
     n = points.shape[0]
-    k = candidates.shape[1]
-    m_target = target.shape[0]
-    dist = np.full(n, np.inf)
-    idx = np.full(n, -1, dtype=np.int64)
-    unresolved = np.zeros(n, dtype=np.bool_)
+    dist, idx, unresolved = _answers(n)
     for m in range(n):
         r = rows[m]
         if reach[r] < 0.0:  # never queried
             unresolved[m] = True
             continue
-        px, py, pz = points[m, 0], points[m, 1], points[m, 2]
-        dx, dy, dz = px - anchor[r, 0], py - anchor[r, 1], pz - anchor[r, 2]
-        lower = bound[r] - np.sqrt(dx * dx + dy * dy + dz * dz)
-        best = np.inf
-        best_j = -1
-        for j in range(k):
-            q = candidates[r, j]
-            if q >= m_target:
-                break
-            if labels[q] != want[m]:
-                continue
-            ex, ey, ez = target[q, 0] - px, target[q, 1] - py, target[q, 2] - pz
-            d2 = ex * ex + ey * ey + ez * ez
-            if d2 < best:
-                best = d2
-                best_j = q
-        if best_j >= 0 and lower > 0.0 and best < lower * lower:
-            if best <= d_max * d_max:
-                dist[m] = np.sqrt(best)
-                idx[m] = best_j
-        elif not lower > d_max:
-            unresolved[m] = True
+        _, _, best_c, best_cj = _scan_candidates(points, m, candidates, r, target, labels,
+                                                 want[m])
+        dist[m], idx[m], unresolved[m] = _class_decided(
+            best_c, best_cj, bound[r] - np.sqrt(_moved_squared(points, m, anchor, r)), d_max)
     return dist, idx, unresolved
 
 
