@@ -119,13 +119,13 @@ def test_extrapolation_adds_the_rest_of_a_straight_creep_and_nothing_else():
     def stepped(xi):
         return (gtsam.Pose3(T) * gtsam.Pose3.Expmap(xi)).matrix()
 
-    jumped, remembered = _extrapolated(T, stepped(0.75 * last), last)
+    jumped, remembered = _extrapolated(stepped(0.75 * last), 0.75 * last, last)
     np.testing.assert_allclose(jumped, stepped(0.75 * last * 4), atol=1e-12)
     assert remembered is None
     for xi, previous in ((0.75 * last, None), (1.2 * last, last),
                          (np.array([0, 1e-3, 0, -2e-3, 1e-3, 0]), last)):
-        same, remembered = _extrapolated(T, stepped(xi), previous)
+        same, remembered = _extrapolated(stepped(xi), xi, previous)
         np.testing.assert_array_equal(same, stepped(xi))
         np.testing.assert_allclose(remembered, xi, atol=1e-15)
-    capped, _ = _extrapolated(T, stepped(0.99 * last), last)
+    capped, _ = _extrapolated(stepped(0.99 * last), 0.99 * last, last)
     np.testing.assert_allclose(capped, stepped(0.99 * last * (1 + EXTRAPOLATE_MAX)), atol=1e-12)

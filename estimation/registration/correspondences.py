@@ -532,49 +532,46 @@ class NeighbourCache:
         # how far a point may move before its candidates can miss the answer
         self.reach[rows] = np.maximum(dk - self.d_max, 0.5 * (dk - dist[:, 0]))
 
+    def _scanned(self, points: np.ndarray, rows: np.ndarray | None, scan) -> tuple:
+        """``scan(points, rows, which)`` (a candidate-scan kernel of those of the query's
+        points, ``which`` indexing them; its third output flags the stale ones) of the cache's
+        ``rows``; the stale points are queried again and scanned anew."""
+        points = np.ascontiguousarray(points, dtype=float)
+        rows = self._rows(points, rows)
+        out = scan(points, rows, slice(None))
+        stale = np.nonzero(out[2])[0]
+        if len(stale):
+            self._refresh(points[stale], rows[stale])
+            for whole, part in zip(out, scan(points[stale], rows[stale], stale)):
+                whole[stale] = part
+        return out
+
     def query(self, points: np.ndarray, rows: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
         """Return (distance, index) of each point's nearest target point; inf beyond d_max.
         ``rows``: the cache's rows of the points (all, in order: None)."""
-        points = np.ascontiguousarray(points, dtype=float)
-        rows = self._rows(points, rows)
-        dist, idx, stale = _kernels.cached_nearest(points, rows, self.anchor, self.reach,
-                                                   self.candidates, self.points, self.d_max)
-        stale = np.nonzero(stale)[0]
-        if len(stale):
-            self._refresh(points[stale], rows[stale])
-            d, i, _ = _kernels.cached_nearest(points[stale], rows[stale], self.anchor,
-                                              self.reach, self.candidates, self.points,
-                                              self.d_max)
-            dist[stale], idx[stale] = d, i
+        dist, idx, _ = self._scanned(points, rows, lambda p, r, _: _kernels.cached_nearest(
+            p, r, self.anchor, self.reach, self.candidates, self.points, self.d_max))
         return dist, idx
 
     def query_with_class(self, points: np.ndarray, rows: np.ndarray | None, labels: np.ndarray,
                          want: np.ndarray) -> tuple[np.ndarray, ...]:
         """:meth:`query` and :meth:`nearest_of_class` in one scan of the candidates: returns
         (distance, index, class distance, class index, unresolved)."""
-        points = np.ascontiguousarray(points, dtype=float)
-        rows = self._rows(points, rows)
         want = np.ascontiguousarray(want, dtype=np.int64)
-        dist, idx, stale, cdist, cidx, unresolved = _kernels.cached_nearest_and_class(
-            points, rows, self.anchor, self.bound, self.reach, self.candidates, self.points,
-            labels, want, self.d_max)
-        stale = np.nonzero(stale)[0]
-        if len(stale):
-            self._refresh(points[stale], rows[stale])
-            d, i, _, cd, ci, u = _kernels.cached_nearest_and_class(
-                points[stale], rows[stale], self.anchor, self.bound, self.reach,
-                self.candidates, self.points, labels, want[stale], self.d_max)
-            dist[stale], idx[stale], cdist[stale], cidx[stale], unresolved[stale] = \
-                d, i, cd, ci, u
+        dist, idx, _, cdist, cidx, unresolved = self._scanned(
+            points, rows, lambda p, r, which: _kernels.cached_nearest_and_class(
+                p, r, self.anchor, self.bound, self.reach, self.candidates, self.points,
+                labels, want[which], self.d_max))
         return dist, idx, cdist, cidx, unresolved
 
     def outlasts(self, points: np.ndarray, motion: float, samples: int = 500) -> bool:
         """True where the median reach of a strided sample of the rows (``points``: all of
         them, in order), queried now, exceeds ``motion`` (m): most rows' candidates would
         still hold their answer after moving that far."""
+        self._rows(points, None)  # (room for all of them)
         rows = np.arange(0, len(points), max(len(points) // samples, 1))
-        self.query(points[rows], rows if self.size == len(points) else None)
+        self.query(points[rows], rows)
         return bool(np.median(self.reach[rows]) > motion)
 
     def nearest_of_class(self, points: np.ndarray, rows: np.ndarray, labels: np.ndarray,

@@ -537,17 +537,17 @@ def _as_transform(T: np.ndarray | gtsam.Pose3 | None) -> np.ndarray:
     return gtsam.Pose3(T).matrix()  # re-orthonormalises the rotation
 
 
-def _extrapolated(T: np.ndarray, T_new: np.ndarray, last: np.ndarray | None
+def _extrapolated(T_new: np.ndarray, step: np.ndarray, last: np.ndarray | None
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Return (the pose to go on from, the step to remember) after the Gauss-Newton step
-    ``T`` -> ``T_new``, given the ``last`` one (None: none to compare with).
+    ``step`` (tangent vector, Logmap of T^-1 T_new) to ``T_new``, given the ``last`` one
+    (None: none to compare with).
 
     Where the step points the way the last one did (cosine above EXTRAPOLATE_COSINE) and is
     shorter by a ratio rho, ICP is creeping along a straight line with linearly shrinking
     steps (the correspondences lag the pose); what remains of that geometric series,
     rho / (1 - rho) steps (at most EXTRAPOLATE_MAX), is added at once, as Besl and McKay's
     accelerated ICP (1992). The next step starts afresh (it measures the jump)."""
-    step = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new)))
     if last is None:
         return T_new, step
     norm, norm_last = np.linalg.norm(step), np.linalg.norm(last)
@@ -1290,7 +1290,8 @@ class Registration:
                     factor = robust_factors(key, src, tgt, Ut, corr.weights, self._alpha,
                                             cfg.semantic_weight if self.semantic else "outside")
                 T_new = solve_weighted(T, factor, cfg.optimizer, cfg.inner_iterations, key)
-            step = np.linalg.norm(gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new))))
+            xi = gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new)))
+            step = np.linalg.norm(xi)
             # nearest-neighbour sets can alternate forever between two poses
             two_cycle = T_prev is not None and np.linalg.norm(gtsam.Pose3.Logmap(
                 gtsam.Pose3(T_prev).between(gtsam.Pose3(T_new)))) < cfg.tolerance
@@ -1309,29 +1310,21 @@ class Registration:
             if not prepared_reverse and step < PREPARE_STEP:
                 prepared_reverse = True
                 self._prepare_reverse(T_new, d)
-            if step < cfg.tolerance:
-                T = T_new
+            if step < cfg.tolerance or two_cycle:
+                # converged; a two-cycle of correspondence sets stops in its middle
+                T = T_new if step < cfg.tolerance else (
+                    gtsam.Pose3(T) * gtsam.Pose3.Expmap(0.5 * xi)).matrix()
                 if wide:  # converged with the wide kernel: now the narrow one
                     wide, T_prev = False, None
                     continue
                 if self._voxel_grid_found(T):  # inside a centroid map: on, matched by cell
                     T_prev = None
                     continue
-                converged, reason = True, "converged"
-                break
-            if two_cycle:  # stop in the middle of the cycle
-                half = 0.5 * gtsam.Pose3.Logmap(gtsam.Pose3(T).between(gtsam.Pose3(T_new)))
-                T = (gtsam.Pose3(T) * gtsam.Pose3.Expmap(half)).matrix()
-                if wide:
-                    wide, T_prev = False, None
-                    continue
-                if self._voxel_grid_found(T):
-                    T_prev = None
-                    continue
-                converged, reason = True, "converged (two-cycle of correspondence sets)"
+                converged, reason = True, ("converged" if step < cfg.tolerance else
+                                           "converged (two-cycle of correspondence sets)")
                 break
             if EXTRAPOLATE:
-                T_new, last_step = _extrapolated(T, T_new, last_step)
+                T_new, last_step = _extrapolated(T_new, xi, last_step)
             T_prev, T = T, T_new
         return self._finish(T, d_final, converged, reason, iterations, cost_log, start)
 
