@@ -55,6 +55,52 @@ def test_quantisation_information_is_the_offset_variance_of_each_group(rng):
     np.testing.assert_allclose(np.cov(moved.T), info, rtol=0.05, atol=1e-6 * np.abs(info).max())
 
 
+def test_plane_tilt_adds_each_aligned_planes_two_tilts(rng):
+    """A plane stored flat in its layer loses its tilt against the lattice too: two tilts
+    about its centroid, one per in-plane axis, each of variance min(tilt^2, pitch^2 /
+    (12 L^2)). The score change of a random offset and random tilts has that covariance."""
+    pitch, tilt = 0.05, 1e-2
+    points = np.c_[rng.uniform(0, 1, (80, 1)), rng.uniform(0, 3, (80, 1)), np.zeros(80)]
+    normals = np.tile([0, 0, 1.0], (80, 1))
+    sens = rng.normal(size=(80, 6)) + 0.5
+    offset_only = quantisation_information(normals, points, sens, pitch)
+    assert quantisation_information(normals, points, sens, pitch, tilt=None) is not None
+    np.testing.assert_array_equal(quantisation_information(normals, points, sens, pitch,
+                                                           tilt=0.0), offset_only)
+    info = quantisation_information(normals, points, sens, pitch, tilt=tilt)
+    dx, dy = points[:, 0] - points[:, 0].mean(), points[:, 1] - points[:, 1].mean()
+    cap = pitch ** 2 / (12 * 12 * np.array([dx.var(), dy.var()]))  # (pitch / L)^2 / 12
+    var = np.minimum(tilt ** 2, cap)
+    assert var[0] == tilt ** 2 and var[1] == cap[1]  # the 3 m side is capped
+    draws = 40000
+    delta = rng.uniform(-pitch / 2, pitch / 2, draws)
+    theta = rng.normal(size=(draws, 2)) * np.sqrt(var)
+    shift = delta[:, None] + theta[:, :1] * dx + theta[:, 1:] * dy  # (draws, 80) along n
+    moved = shift @ sens
+    np.testing.assert_allclose(np.cov(moved.T), info, rtol=0.05,
+                               atol=0.02 * np.abs(info).max())
+    assert np.linalg.eigvalsh(info - offset_only).min() > -1e-15
+
+
+def test_plane_tilt_leaves_tilted_planes_alone(rng):
+    # a plane that crosses layers shows its tilt (tilted_groups): neither term
+    pitch = 0.03
+    xy = rng.uniform(0, 2, (600, 2))
+    inside = (np.floor(np.c_[xy, 0.035 * (xy[:, 0] - 1.0) + rng.normal(0, 0.003, 600)]
+                       / pitch) + 0.5) * pitch
+    normals = np.tile([0, 0, 1.0], (600, 1))
+    sens = rng.normal(size=(600, 6)) + 1.0
+    np.testing.assert_array_equal(
+        quantisation_information(normals, inside, sens, pitch, inside, tilt=1e-3),
+        quantisation_information(normals, inside, sens, pitch, inside))
+
+
+def test_bad_plane_tilt_is_rejected():
+    for bad in (-1e-3, float("nan"), "small"):
+        with pytest.raises(EstimationError, match="plane_tilt"):
+            RegistrationConfig(plane_tilt=bad)
+
+
 def test_tilted_groups_tell_tilted_planes_from_aligned_ones_and_steps(rng):
     """A plane tilted against the lattice crosses layers steadily; a plane parallel to it
     (its voxels split between two layers by noise) and a step between two parallel planes
@@ -122,10 +168,11 @@ def _mean_nees(errors, covs) -> float:
     return float(np.mean(nees(np.array(errors), np.array(covs))))
 
 
-def _room_view_trials(quantisation_pitch=None, **room):
+def _room_view_trials(quantisation_pitch=None, plane_tilt=None, **room):
     """(errors, covariances, model terms) of Semantic-ICP from each headset view of rooms
     100-107 (``RoomConfig(seed, **room)``) to the robot's map, from a random start 0.2 m /
-    5 deg around the truth; ``quantisation_pitch``: the pitch each result must report."""
+    5 deg around the truth; ``quantisation_pitch``: the pitch each result must report;
+    ``plane_tilt``: the option's value (None: the simulator's planes are exact)."""
     from perception.simulation.room import (
         VIEWPOINTS,
         RoomConfig,
@@ -142,8 +189,11 @@ def _room_view_trials(quantisation_pitch=None, **room):
             source, T_gt = headset_cloud(built, view, cfg)
             rng = np.random.default_rng(seed * 10 + k)
             init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
+            # (the simulator builds its rooms' planes exactly parallel to the map's lattice:
+            # no tilt within a layer to model, unlike a real room's map)
             result = Registration(source.points, target.points,
-                                  RegistrationConfig(max_correspondence_distance=0.2),
+                                  RegistrationConfig(max_correspondence_distance=0.2,
+                                                     plane_tilt=plane_tilt),
                                   source.probs, target.probs).run(init)
             assert result.converged, result.reason
             if quantisation_pitch is not None:

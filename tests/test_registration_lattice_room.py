@@ -1,0 +1,85 @@
+"""Registration on a real room's 3 cm lattice map (voxel centres, as an octree map).
+
+ICL-NUIM's office is a CAD room in its own axes: its walls and floor are parallel to the
+lattice within a few mrad, so each is stored as one flat layer of voxel centres. The
+quantisation term (one uniform offset per slab) was calibrated on the room simulator, whose
+planes are exactly parallel to the lattice. The real office's floor is tilted 2.1 mrad and
+stays within one layer: the map has lost that tilt, and the estimate turns with it
+(docs/registration.md, "Lattice maps of real rooms"). ``plane_tilt`` models it. Known gap
+(strict xfail): two of the benchmark's twelve starts also slide along a direction that
+few pairs constrain, which no term models, so the mean NEES stays above the band.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.registration import D_FINAL, OFFSETS, register_ours
+from benchmarks.registration_indoor import half_room_source, labelled, voxel_map
+from estimation.covariance import check_consistency, nees
+from estimation.registration import pose_error
+from estimation.registration.metrics import offset_about_centroid
+
+N_TRIALS = 8
+PITCH = 0.03
+
+
+@pytest.fixture(scope="module")
+def office(centroid_room):
+    points, labels, _ = centroid_room("icl", 10)
+    return points, labels, labelled(*voxel_map(points, labels, "centres"))
+
+
+@pytest.fixture(scope="module")
+def nees_by_option(office):
+    """NEES of the same N_TRIALS half-room starts with the tilt term (the default)
+    and without it."""
+    points, labels, target = office
+    metres, degrees, d0 = OFFSETS["small"]
+    out = {"default": [], "no tilt": []}
+    for seed in range(N_TRIALS):
+        for key, options in (("default", {}), ("no tilt", {"plane_tilt": None})):
+            rng = np.random.default_rng(seed)
+            source, T_gt = half_room_source(points, labels, rng, 15000)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres,
+                                                degrees)
+            result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
+            assert result.converged, result.reason
+            assert result.diagnostic.quantisation_pitch == pytest.approx(PITCH)
+            out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
+                                 result.covariance[None])[0])
+    return {key: np.array(value) for key, value in out.items()}
+
+
+def test_the_lattice_map_keeps_a_tilted_floor_flat(office):
+    # the mechanism, on the data: the office's largest horizontal plane is tilted > 1 mrad
+    # against the lattice, and nearly all of its points fall into one layer of voxels
+    points = office[0]
+    layer = np.floor(points[:, 1] / PITCH).astype(np.int64)
+    values, counts = np.unique(layer, return_counts=True)
+    slab = points[np.abs(layer - values[np.argmax(counts)]) <= 1]
+    centre = slab.mean(axis=0)
+    normal = np.linalg.eigh(np.cov((slab - centre).T))[1][:, 0]
+    plane = slab[np.abs((slab - centre) @ normal) < 0.02]
+    normal = np.linalg.eigh(np.cov((plane - plane.mean(axis=0)).T))[1][:, 0]
+    tilt = np.arccos(abs(normal[1]))
+    assert tilt > 1e-3, tilt
+    plane_layers = np.floor(plane[:, 1] / PITCH).astype(np.int64)
+    assert np.mean(plane_layers == np.bincount(plane_layers - plane_layers.min()).argmax()
+                   + plane_layers.min()) > 0.9
+
+
+@pytest.mark.slow
+def test_plane_tilt_covers_most_of_the_gap_on_a_real_lattice_map(nees_by_option):
+    # measured (8 starts): median NEES 8.5 with the term, 48.5 without it
+    with_tilt, without = (np.median(nees_by_option[k]) for k in ("default", "no tilt"))
+    assert with_tilt < 15.0, nees_by_option
+    assert without > 30.0, nees_by_option
+    assert without > 3.0 * with_tilt
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="issue 14, open: starts that slide along a direction "
+                   "few pairs constrain on a lattice map (mean NEES 23 on these starts)")
+def test_covariance_is_consistent_on_a_real_lattice_map(nees_by_option):
+    assert check_consistency(nees_by_option["default"], dof=6).passed
