@@ -6,7 +6,7 @@ Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs
 (T_target_source, 4x4), covariance (6x6, [rotation, translation]), converged, reason,
 iterations, inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
 model-error share, correlation ratio, re-association gain, symmetric, direction gap, overlap,
-voxel pitch of same-voxel matching,
+voxel pitch of same-voxel matching, cell-crossing bias, map error, plane tilt,
 covariance_trusted) and, with --gt, d_se3 (eq. (9)),
 t_err_m, r_err_rad and nees.
 
@@ -157,6 +157,7 @@ def _register(args, source, target, flip=None) -> dict:
             "voxel_pitch_m": getattr(diagnostic, "voxel_pitch", None),
             "crossing_bias_m": getattr(diagnostic, "crossing_bias", None),
             "map_error_m": getattr(diagnostic, "map_error", None),
+            "plane_tilt_rad": getattr(diagnostic, "plane_tilt", None),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:

@@ -419,6 +419,9 @@ class CovarianceDiagnostic:
     map_error : the standard deviation (m, per axis) of the blocks' offsets of the
         map-representation term (``RegistrationConfig.map_error``) that was used, or None;
         what it adds to the point-noise sandwich is part of ``model_covariance``
+    plane_tilt : the standard deviation (rad) of the tilts of the quantisation term's planes
+        (``RegistrationConfig.plane_tilt``) that was used, or None (no quantisation term, or
+        no tilts); part of ``model_covariance``
     """
 
     quantisation_pitch: float | None
@@ -433,6 +436,7 @@ class CovarianceDiagnostic:
     voxel_pitch: float | None = None
     crossing_bias: float | None = None
     map_error: float | None = None
+    plane_tilt: float | None = None
 
 
 @dataclass(frozen=True)
@@ -1493,7 +1497,8 @@ class Registration:
                 cov_model, gain,
                 overlap=overlap,
                 voxel_pitch=self._grid.pitch if isinstance(self._grid, VoxelGrid) else None,
-                crossing_bias=crossing, map_error=map_error)
+                crossing_bias=crossing, map_error=map_error,
+                plane_tilt=cfg.plane_tilt if pitch is not None and cfg.plane_tilt else None)
             if reverse is not None:
                 reverse_terms = reverse.result()  # (waited for when unused, too)
                 if not unconstrained:
