@@ -65,6 +65,7 @@ Usage::
     python benchmarks/registration_indoor.py --rooms tum --maps centroids --trials 10
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --classes 24
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --setting part
+    python benchmarks/registration_indoor.py --rooms tum,icl --maps centres --plane-tilt 0.001
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --methods \
         gicp-se3,open3d-gicp --trials 10 --phase-covariance 10
 """
@@ -222,8 +223,10 @@ def phase_covariance(source: np.ndarray, maps: list[np.ndarray], T: np.ndarray) 
 
 
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="half",
-             phases=0, source_points=SOURCE_POINTS) -> dict:
+             phases=0, source_points=SOURCE_POINTS, ours: dict | None = None) -> dict:
     """Return every trial's numbers of one (room, map kind, offset, setting) cell.
+
+    ``ours``: further RegistrationConfig fields for every method of ours.
 
     ``phases`` > 1 (GICP-SE(3), "half"): also the NEES with the grid-phase covariance
     (:func:`phase_covariance`) added, as ``nees_phase``.
@@ -248,8 +251,9 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
                 T, seconds = run_open3d(source, target, init, (d0, D_FINAL))
                 result = None
             else:
-                options = {"gicp-se3-nogate": {"boundary_gate": None},
-                           "gicp-se3-nearest": {"voxel_matching": None}}.get(method, {})
+                options = {**(ours or {}), **{"gicp-se3-nogate": {"boundary_gate": None},
+                                              "gicp-se3-nearest": {"voxel_matching": None}
+                                              }.get(method, {})}
                 result, seconds = register_ours(source, target, init, (d0, D_FINAL),
                                                 semantic=method == "semantic-icp", **options)
                 T = result.T
@@ -346,6 +350,9 @@ def main(argv=None) -> int:
     parser.add_argument("--phase-covariance", type=int, default=0, metavar="K",
                         help="also the NEES with the spread over K grid phases of the room's "
                         "own points added (GICP-SE(3), half setting; a diagnosis)")
+    parser.add_argument("--plane-tilt", type=float, default=None, metavar="RAD",
+                        help="RegistrationConfig.plane_tilt for ours (a real room's lattice "
+                        "map: 0.001; default: off)")
     args = parser.parse_args(argv)
     if args.source_points < 0:
         parser.error("--source-points must be 0 (all) or positive")
@@ -372,7 +379,9 @@ def main(argv=None) -> int:
             for offset in args.offsets.split(","):
                 cell = run_cell(points, labels, kind, offset, args.trials, methods,
                                 setting=args.setting, phases=args.phase_covariance,
-                                source_points=args.source_points)
+                                source_points=args.source_points,
+                                ours=({} if args.plane_tilt is None
+                                      else {"plane_tilt": args.plane_tilt}))
                 report(name, kind, offset, cell, args.setting)
                 out[f"{name}/{kind}/{offset}/{args.setting}"] = cell
     print(f"\nload average at end {os.getloadavg()[0]:.2f}")

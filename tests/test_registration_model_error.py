@@ -149,7 +149,12 @@ def test_quantisation_can_be_given_or_switched_off():
     source, _, target, _, _ = make_pair(4, 1500, 0.005)
     given = Registration(source, target, RegistrationConfig(quantisation=0.03)).run()
     assert given.diagnostic.quantisation_pitch == 0.03
-    assert given.diagnostic.plane_tilt == RegistrationConfig().plane_tilt == 1e-3
+    assert given.diagnostic.plane_tilt is None and RegistrationConfig().plane_tilt is None
+    tilted = Registration(source, target, RegistrationConfig(quantisation=0.03,
+                                                             plane_tilt=1e-3)).run()
+    assert tilted.diagnostic.plane_tilt == 1e-3
+    np.testing.assert_array_equal(tilted.T, given.T)  # the covariance only
+    assert np.trace(tilted.covariance) > np.trace(given.covariance)
     assert given.diagnostic.model_error_share > 0.0
     # with a quantisation term the point noise keeps the fixed-association bread (the
     # matches' jumps between lattice sites are that term's), so compare with that bread
