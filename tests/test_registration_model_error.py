@@ -96,7 +96,7 @@ def test_plane_tilt_leaves_tilted_planes_alone(rng):
 
 
 def test_bad_plane_tilt_is_rejected():
-    for bad in (-1e-3, float("nan"), "small"):
+    for bad in (-1e-3, float("nan"), float("inf"), "small", True):
         with pytest.raises(EstimationError, match="plane_tilt"):
             RegistrationConfig(plane_tilt=bad)
 

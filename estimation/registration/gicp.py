@@ -327,6 +327,7 @@ class RegistrationConfig:
             raise EstimationError(f"voxel_matching must be an angle in (0, 90] degrees or None, "
                                   f"got {self.voxel_matching!r}")
         if self.plane_tilt is not None and not (isinstance(self.plane_tilt, (int, float))
+                                                and not isinstance(self.plane_tilt, bool)
                                                 and math.isfinite(self.plane_tilt)
                                                 and self.plane_tilt >= 0):
             raise EstimationError(f"plane_tilt must be a non-negative finite angle (rad) or "
