@@ -7,8 +7,8 @@ planes are exactly parallel to the lattice. The real office's floor is tilted 2.
 stays within one layer: the map has lost that tilt, and the estimate turns with it
 (docs/registration.md, "Lattice maps of real rooms"). ``plane_tilt`` (1 mrad for a real
 room's map; off by default, for the simulator's exact planes) models it. Known gap
-(strict xfail): two of the benchmark's twelve starts also slide along a direction that
-few pairs constrain, which no term models, so the mean NEES stays above the band.
+(strict xfail): a start whose half room has almost no surface facing one direction slides
+along it, which no term models, so the mean NEES stays above the band.
 """
 from __future__ import annotations
 

@@ -190,7 +190,7 @@ class RegistrationConfig:
         further crosses a layer and shows it). A lattice map stores a plane that stays within
         its layer flat, so a real room's planes lose their tilt against the lattice (ICL-
         NUIM's office: the floor 2.1 mrad): 3 cm lattice map of that office, half-room
-        sources, 12 trials, median NEES 103 -> 9.3 (mean 191 -> 56: two starts slide along a
+        sources, 12 trials, median NEES 103 -> 9.3 (mean 191 -> 56: a start slides along a
         direction few pairs constrain, not modelled), the TUM room 6.47 -> 4.89 (docs/
         registration.md, "Lattice maps of real rooms"); 1e-3 there. None (default) or 0 = no
         tilt term: planes exactly parallel to the lattice, as the room simulator builds them
