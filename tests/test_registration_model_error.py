@@ -64,9 +64,9 @@ def test_plane_tilt_adds_each_aligned_planes_two_tilts(rng):
     normals = np.tile([0, 0, 1.0], (80, 1))
     sens = rng.normal(size=(80, 6)) + 0.5
     offset_only = quantisation_information(normals, points, sens, pitch)
-    assert quantisation_information(normals, points, sens, pitch, tilt=None) is not None
-    np.testing.assert_array_equal(quantisation_information(normals, points, sens, pitch,
-                                                           tilt=0.0), offset_only)
+    for off in (None, 0.0):
+        np.testing.assert_array_equal(quantisation_information(normals, points, sens, pitch,
+                                                               tilt=off), offset_only)
     info = quantisation_information(normals, points, sens, pitch, tilt=tilt)
     dx, dy = points[:, 0] - points[:, 0].mean(), points[:, 1] - points[:, 1].mean()
     cap = pitch ** 2 / (12 * 12 * np.array([dx.var(), dy.var()]))  # (pitch / L)^2 / 12

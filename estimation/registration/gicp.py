@@ -326,23 +326,19 @@ class RegistrationConfig:
         if angle is not None and not (isinstance(angle, (int, float)) and 0.0 < angle <= 90.0):
             raise EstimationError(f"voxel_matching must be an angle in (0, 90] degrees or None, "
                                   f"got {self.voxel_matching!r}")
-        if self.plane_tilt is not None and not (isinstance(self.plane_tilt, (int, float))
-                                                and not isinstance(self.plane_tilt, bool)
-                                                and math.isfinite(self.plane_tilt)
-                                                and self.plane_tilt >= 0):
-            raise EstimationError(f"plane_tilt must be a non-negative finite angle (rad) or "
-                                  f"None, got {self.plane_tilt!r}")
         for name in ("reassociation_step", "boundary_gate"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, (int, float))
                                           and math.isfinite(value) and value > 0):
                 raise EstimationError(f"{name} must be a positive finite number or None, "
                                       f"got {value!r}")
-        if self.map_error is not None and not (isinstance(self.map_error, (int, float))
-                                               and math.isfinite(self.map_error)
-                                               and self.map_error >= 0):
-            raise EstimationError(f"map_error must be a non-negative finite number or None, "
-                                  f"got {self.map_error!r}")
+        for name in ("map_error", "plane_tilt"):  # (m in pitches; rad)
+            value = getattr(self, name)
+            if value is not None and not (isinstance(value, (int, float))
+                                          and not isinstance(value, bool)
+                                          and math.isfinite(value) and value >= 0):
+                raise EstimationError(f"{name} must be a non-negative finite number or None, "
+                                      f"got {value!r}")
         if not (isinstance(self.map_error_block, (int, float))
                 and math.isfinite(self.map_error_block) and self.map_error_block > 0):
             raise EstimationError(f"map_error_block must be a positive finite number, "
