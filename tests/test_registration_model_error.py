@@ -174,11 +174,10 @@ def _mean_nees(errors, covs) -> float:
     return float(np.mean(nees(np.array(errors), np.array(covs))))
 
 
-def _room_view_trials(quantisation_pitch=None, plane_tilt=None, **room):
+def _room_view_trials(quantisation_pitch=None, **room):
     """(errors, covariances, model terms) of Semantic-ICP from each headset view of rooms
     100-107 (``RoomConfig(seed, **room)``) to the robot's map, from a random start 0.2 m /
-    5 deg around the truth; ``quantisation_pitch``: the pitch each result must report;
-    ``plane_tilt``: the option's value (None: the simulator's planes are exact)."""
+    5 deg around the truth; ``quantisation_pitch``: the pitch each result must report."""
     from perception.simulation.room import (
         VIEWPOINTS,
         RoomConfig,
@@ -195,11 +194,10 @@ def _room_view_trials(quantisation_pitch=None, plane_tilt=None, **room):
             source, T_gt = headset_cloud(built, view, cfg)
             rng = np.random.default_rng(seed * 10 + k)
             init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
-            # (the simulator builds its rooms' planes exactly parallel to the map's lattice:
-            # no tilt within a layer to model, unlike a real room's map)
+            # (the defaults: the simulator builds its rooms' planes exactly parallel to the
+            # map's lattice, no tilt within a layer to model, so plane_tilt stays off)
             result = Registration(source.points, target.points,
-                                  RegistrationConfig(max_correspondence_distance=0.2,
-                                                     plane_tilt=plane_tilt),
+                                  RegistrationConfig(max_correspondence_distance=0.2),
                                   source.probs, target.probs).run(init)
             assert result.converged, result.reason
             if quantisation_pitch is not None:
