@@ -1,4 +1,4 @@
-"""Benchmark on real indoor RGB-D rooms: a 3 cm voxel map against a raw part of the room.
+"""Benchmark on real indoor rooms: a 3 cm voxel map against a raw part of the room.
 
 Issue 14's held-out check registers real indoor scans with semantic labels: a 3 cm voxel map
 of a room against a raw half-room cloud with 5 mm noise and 10 % wrong labels. This script
@@ -10,9 +10,14 @@ room
     point per 5 mm voxel (``perception.rgbd.voxel_filter``). The room is only a point set:
     errors of the ground-truth poses make its surfaces thicker, they do not enter the
     registration's ground truth.
+    ``scan`` is another kind of room: one real 3-D laser scan of a building's corridor
+    (OctoMap's ``scan.dat.bz2`` in ``shared/data/octomap``, read as float32 as OctoMap
+    does), its points within ``SCAN_RANGE`` (8 m) of the sensor: 68k points, one scan, no
+    fusion, 2 points per 3 cm voxel on average (the RGB-D rooms: about 10).
 labels
     The shared data have no semantic labels, so each room point gets a geometric class as a
-    stand-in: the axis its surface normal (Open3D, 5 cm radius) is nearest to (three classes)
+    stand-in: the axis its surface normal (Open3D, 5 cm radius; 15 cm for the sparser
+    laser scan) is nearest to (three classes)
     or "other" where no axis is within about 32 deg. Spatially coherent like real classes;
     they are not object classes. ``--classes N`` (more than 4) stands in for object labels,
     which come in dozens: each geometric class within each 0.6 m block is a segment, and
@@ -66,6 +71,7 @@ Usage::
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --classes 24
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --setting part
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centres --plane-tilt 0.001
+    python benchmarks/registration_indoor.py --rooms scan --maps centroids --map-error none
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --methods \
         gicp-se3,open3d-gicp --trials 10 --phase-covariance 10
 """
@@ -93,7 +99,9 @@ DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "rgbd"
 # folder, pinhole intrinsics (fx fy cx cy, 640 x 480), lens distortion (OpenCV order) or None
 ROOMS = {"tum": ("tum_fr1_rpy", (517.3, 516.5, 318.6, 255.3),
                  (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
-         "icl": ("icl_of_kt0", (481.2, 480.0, 319.5, 239.5), None)}
+         "icl": ("icl_of_kt0", (481.2, 480.0, 319.5, 239.5), None),
+         "scan": None}  # OctoMap's laser scan (scan_room)
+SCAN_RANGE = 8.0  # m: the laser scan's points kept (beyond, its spacing is several pitches)
 N_GEOMETRIC = 4  # the rooms' geometric classes (three axes and "other")
 N_CLASSES = N_GEOMETRIC  # the classes of the run (--classes)
 PITCH = 0.03
@@ -109,10 +117,10 @@ def labelled(points: np.ndarray, labels: np.ndarray) -> SemanticCloud:
 
 def room_cloud(name: str, step: int = 5, data: Path = DATA) -> tuple[np.ndarray, np.ndarray]:
     """Return (points (N, 3), geometric class labels (N,)) of the fused room ``name``."""
-    import open3d as o3d
-
     from perception.rgbd import CameraIntrinsics, TumRgbdSequence, backproject, voxel_filter
 
+    if name == "scan":
+        return scan_room(data.parent / "octomap" / "scan.dat.bz2")
     folder, (fx, fy, cx, cy), distortion = ROOMS[name]
     intr = CameraIntrinsics(fx, fy, cx, cy, 640, 480, 5000.0)
     seq = TumRgbdSequence(data / folder, intr, distortion=distortion)
@@ -125,12 +133,32 @@ def room_cloud(name: str, step: int = 5, data: Path = DATA) -> tuple[np.ndarray,
         T = frame.T_world_camera_gt.matrix()
         parts.append(backproject(depth, intr, 2).astype(float) @ T[:3, :3].T + T[:3, 3])
     points = voxel_filter(np.concatenate(parts), 0.005).astype(float)
+    return points, geometric_labels(points, 0.05)
+
+
+def scan_room(path: Path, max_range: float = SCAN_RANGE) -> tuple[np.ndarray, np.ndarray]:
+    """Return (points, geometric class labels) of OctoMap's laser scan within ``max_range``
+    (m) of its sensor (one ``x y z`` per line, read as float32 as OctoMap reads it)."""
+    import bz2
+
+    with bz2.open(path, "rt") as fh:
+        points = np.loadtxt(fh, dtype=np.float32).astype(float)
+    points = points[np.linalg.norm(points, axis=1) <= max_range]
+    return points, geometric_labels(points, 0.15)
+
+
+def geometric_labels(points: np.ndarray, radius: float) -> np.ndarray:
+    """Return each point's geometric class: the axis its surface normal (Open3D, ``radius``
+    m, at most 30 neighbours) is nearest to, or 3 ("other") where none is within about
+    32 deg."""
+    import open3d as o3d
+
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(0.05, 30))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius, 30))
     normals = np.abs(np.asarray(cloud.normals))
     labels = np.argmax(normals, axis=1)
     labels[normals.max(axis=1) < 0.85] = 3
-    return points, labels.astype(np.int64)
+    return labels.astype(np.int64)
 
 
 def object_labels(points: np.ndarray, labels: np.ndarray, n_classes: int,
@@ -330,7 +358,8 @@ def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half")
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--rooms", default="tum,icl", help="comma-separated: tum,icl")
+    parser.add_argument("--rooms", default="tum,icl",
+                        help="comma-separated: tum,icl,scan (scan: OctoMap's laser scan)")
     parser.add_argument("--maps", default="centroids,centres",
                         help="comma-separated: centroids,centres")
     parser.add_argument("--offsets", default="small", help="comma-separated: small,wide")
@@ -353,7 +382,19 @@ def main(argv=None) -> int:
     parser.add_argument("--plane-tilt", type=float, default=None, metavar="RAD",
                         help="RegistrationConfig.plane_tilt for ours (a real room's lattice "
                         "map: 0.001; default: off)")
+    parser.add_argument("--map-error", default=None, metavar="S",
+                        help="RegistrationConfig.map_error for ours, in pitches, or 'none' "
+                        "(the term off; default: the config's default)")
     args = parser.parse_args(argv)
+    ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
+    if args.map_error is not None:
+        try:
+            ours["map_error"] = (None if args.map_error.lower() == "none"
+                                 else float(args.map_error))
+        except ValueError:
+            parser.error(f"--map-error must be a number or 'none', got {args.map_error!r}")
+    if set(args.rooms.split(",")) - set(ROOMS):
+        parser.error(f"--rooms must be from {', '.join(ROOMS)}")
     if args.source_points < 0:
         parser.error("--source-points must be 0 (all) or positive")
     if args.classes < N_GEOMETRIC:
@@ -379,9 +420,7 @@ def main(argv=None) -> int:
             for offset in args.offsets.split(","):
                 cell = run_cell(points, labels, kind, offset, args.trials, methods,
                                 setting=args.setting, phases=args.phase_covariance,
-                                source_points=args.source_points,
-                                ours=({} if args.plane_tilt is None
-                                      else {"plane_tilt": args.plane_tilt}))
+                                source_points=args.source_points, ours=ours)
                 report(name, kind, offset, cell, args.setting)
                 out[f"{name}/{kind}/{offset}/{args.setting}"] = cell
     print(f"\nload average at end {os.getloadavg()[0]:.2f}")

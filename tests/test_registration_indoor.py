@@ -260,3 +260,13 @@ def test_source_points_zero_takes_the_whole_half():
     assert cKDTree(points).query(back)[0].max() < 0.05
     with pytest.raises(SystemExit):
         main(["--source-points", "-1"])
+
+
+@pytest.mark.parametrize("argv", [["--map-error", "big"], ["--rooms", "tum,kitchen"]])
+def test_benchmark_refuses_a_bad_map_error_or_room(argv, capsys):
+    from benchmarks.registration_indoor import main
+
+    with pytest.raises(SystemExit) as info:
+        main(argv)
+    assert info.value.code == 2
+    assert argv[0] in capsys.readouterr().err

@@ -1,0 +1,74 @@
+"""Registration on a third real room: a single laser scan's 3 cm voxel-centroid map.
+
+OctoMap's ``scan.dat`` (one real 3-D laser scan of a corridor, no fusion) within 8 m of its
+sensor, half of it against the whole scan's 3 cm centroid map, 5 mm noise, 10 % wrong
+labels: issue 14's held-out protocol on a room of another kind than the two RGB-D rooms the
+map term (``map_error``, 0.03 pitch) was sized on. A voxel of this map holds about 2 points
+(the RGB-D rooms' about 10). Measured (docs/registration.md, "A single laser scan's map"):
+the point-noise covariance alone is about right (mean NEES 4.4 over 20 starts), and the map
+term, sized on fused RGB-D rooms, over-covers it 3-6x (1.3 at 15k source points, 0.8 with
+the raw half). Known gap, kept as a strict xfail.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.registration import D_FINAL, OFFSETS, register_ours
+from benchmarks.registration_indoor import half_room_source, labelled, scan_room, voxel_map
+from estimation.covariance import check_consistency, nees
+from estimation.registration import pose_error
+from estimation.registration.metrics import offset_about_centroid
+
+N_TRIALS = 8
+
+
+@pytest.fixture(scope="module")
+def scan(shared_data):
+    points, labels = scan_room(shared_data / "octomap" / "scan.dat.bz2")
+    return points, labels, labelled(*voxel_map(points, labels, "centroids"))
+
+
+@pytest.fixture(scope="module")
+def nees_by_option(scan):
+    """NEES of the same N_TRIALS half-scan starts with the default config and with the map
+    term off (``map_error=None``)."""
+    points, labels, target = scan
+    metres, degrees, d0 = OFFSETS["small"]
+    out = {"default": [], "no map term": []}
+    for seed in range(N_TRIALS):
+        for key, options in (("default", {}), ("no map term", {"map_error": None})):
+            rng = np.random.default_rng(seed)
+            source, T_gt = half_room_source(points, labels, rng, 15000)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres,
+                                                degrees)
+            result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
+            assert result.converged, result.reason
+            assert pose_error(result.T, T_gt).t_err_m < 0.01
+            if key == "default":
+                # the map's grid is found, so the term is in and the run is trusted
+                assert result.diagnostic.map_error == pytest.approx(0.03 * 0.03, rel=1e-3)
+                assert result.diagnostic.trusted
+            out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
+                                 result.covariance[None])[0])
+    return {key: np.array(value) for key, value in out.items()}
+
+
+def test_scan_room_is_a_sparse_single_scan(scan):
+    # what sets it apart from the RGB-D rooms: about 2 points per 3 cm voxel (they have 7-10)
+    points, _, target = scan
+    assert 60000 < len(points) < 75000
+    assert 1.5 < len(points) / len(target.points) < 2.5
+
+
+def test_point_noise_covariance_is_near_calibrated_on_a_single_scan(nees_by_option):
+    # without the map term: mean NEES 4.04 over these 8 starts (4.38 over 20), the band
+    # of a mean of 8 [3.84, 8.63]. A sandwich that lost its clustering or its re-matched
+    # bread would be over-confident here; a covariance inflated 2x would fall below 3.
+    assert 3.0 < np.mean(nees_by_option["no map term"]) < 8.63, nees_by_option
+
+
+@pytest.mark.xfail(strict=True, reason="issue 14, open: the map term (0.03 pitch, sized on "
+                   "fused RGB-D rooms) over-covers a single laser scan's map: mean NEES 1.3")
+def test_covariance_is_consistent_on_a_single_scan_map(nees_by_option):
+    assert check_consistency(nees_by_option["default"], dof=6).passed
