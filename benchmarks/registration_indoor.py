@@ -72,6 +72,7 @@ Usage::
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --setting part
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centres --plane-tilt 0.001
     python benchmarks/registration_indoor.py --rooms scan --maps centroids --map-error none
+    python benchmarks/registration_indoor.py --rooms scan --maps centres --lattice-noise none
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --methods \
         gicp-se3,open3d-gicp --trials 10 --phase-covariance 10
 """
@@ -382,17 +383,23 @@ def main(argv=None) -> int:
     parser.add_argument("--plane-tilt", type=float, default=None, metavar="RAD",
                         help="RegistrationConfig.plane_tilt for ours (a real room's lattice "
                         "map: 0.001; default: off)")
+    parser.add_argument("--lattice-noise", default=None, metavar="M",
+                        help="RegistrationConfig.lattice_noise for ours (m), or 'none' (the "
+                        "sawtooth term of planes tilted against a lattice off; default: the "
+                        "config's default)")
     parser.add_argument("--map-error", default=None, metavar="S",
                         help="RegistrationConfig.map_error for ours, in pitches, or 'none' "
                         "(the term off; default: the config's default)")
     args = parser.parse_args(argv)
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
-    if args.map_error is not None:
-        try:
-            ours["map_error"] = (None if args.map_error.lower() == "none"
-                                 else float(args.map_error))
-        except ValueError:
-            parser.error(f"--map-error must be a number or 'none', got {args.map_error!r}")
+    for flag, field in (("map_error", "map_error"), ("lattice_noise", "lattice_noise")):
+        value = getattr(args, flag)
+        if value is not None:
+            try:
+                ours[field] = None if value.lower() == "none" else float(value)
+            except ValueError:
+                parser.error(f"--{flag.replace('_', '-')} must be a number or 'none', "
+                             f"got {value!r}")
     if set(args.rooms.split(",")) - set(ROOMS):
         parser.error(f"--rooms must be from {', '.join(ROOMS)}")
     if args.source_points < 0:

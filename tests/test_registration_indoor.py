@@ -262,7 +262,8 @@ def test_source_points_zero_takes_the_whole_half():
         main(["--source-points", "-1"])
 
 
-@pytest.mark.parametrize("argv", [["--map-error", "big"], ["--rooms", "tum,kitchen"]])
+@pytest.mark.parametrize("argv", [["--map-error", "big"], ["--lattice-noise", "5 mm"],
+                                  ["--rooms", "tum,kitchen"]])
 def test_benchmark_refuses_a_bad_map_error_or_room(argv, capsys):
     from benchmarks.registration_indoor import main
 

@@ -1,4 +1,4 @@
-"""Registration on a third real room: a single laser scan's 3 cm voxel-centroid map.
+"""Registration on a third real room: a single laser scan's 3 cm voxel maps.
 
 OctoMap's ``scan.dat`` (one real 3-D laser scan of a corridor, no fusion) within 8 m of its
 sensor, half of it against the whole scan's 3 cm centroid map, 5 mm noise, 10 % wrong
@@ -8,6 +8,11 @@ map term (``map_error``, 0.03 pitch) was sized on. A voxel of this map holds abo
 the point-noise covariance alone is about right (mean NEES 4.4 over 20 starts), and the map
 term, sized on fused RGB-D rooms, over-covers it 3-6x (1.3 at 15k source points, 0.8 with
 the raw half). Known gap, kept as a strict xfail.
+
+Its lattice map (voxel centres, as an octree stores it): the scan's planes are tilted
+against the lattice and sampled along a few scan lines, so their staircases do not average
+out; without the sawtooth term (``lattice_noise=None``) mean NEES 44, every run trusted;
+with it (5 mm) 13.6 (median 8.0). The rest is a known gap (strict xfail).
 """
 from __future__ import annotations
 
@@ -27,6 +32,41 @@ N_TRIALS = 8
 def scan(shared_data):
     points, labels = scan_room(shared_data / "octomap" / "scan.dat.bz2")
     return points, labels, labelled(*voxel_map(points, labels, "centroids"))
+
+
+@pytest.fixture(scope="module")
+def lattice_nees(scan):
+    """NEES of the same N_TRIALS half-scan starts against the scan's lattice map, with the
+    default config (the sawtooth term of tilted planes, 5 mm) and without the term."""
+    points, labels, _ = scan
+    target = labelled(*voxel_map(points, labels, "centres"))
+    metres, degrees, d0 = OFFSETS["small"]
+    out = {"default": [], "no sawtooth": []}
+    for seed in range(N_TRIALS):
+        for key, options in (("default", {}), ("no sawtooth", {"lattice_noise": None})):
+            rng = np.random.default_rng(seed)
+            source, T_gt = half_room_source(points, labels, rng, 15000)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres,
+                                                degrees)
+            result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
+            assert result.converged, result.reason
+            assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+            out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
+                                 result.covariance[None])[0])
+    return {key: np.array(value) for key, value in out.items()}
+
+
+def test_sawtooth_term_covers_most_of_the_lattice_gap(lattice_nees):
+    # measured (8 starts): median NEES 8.0 with the term, 23.4 without; means 13.6 and 44
+    with_term, without = lattice_nees["default"], lattice_nees["no sawtooth"]
+    assert np.median(with_term) < 12.0 and np.median(without) > 16.0, lattice_nees
+    assert np.mean(with_term) < 0.5 * np.mean(without)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 14, open: the lattice map of a single laser "
+                   "scan, mean NEES 13.6 with the sawtooth term (44 without)")
+def test_covariance_is_consistent_on_a_single_scan_lattice_map(lattice_nees):
+    assert check_consistency(lattice_nees["default"], dof=6).passed
 
 
 @pytest.fixture(scope="module")

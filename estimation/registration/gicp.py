@@ -283,6 +283,7 @@ class RegistrationConfig:
     symmetric: bool = True
     tilted_planes: bool = True
     plane_tilt: float | None = None
+    lattice_noise: float | None = 0.005
     boundary_gate: float | None = 0.3
     voxel_matching: float | None = 10.0
     crossing_bias: bool = True
@@ -332,7 +333,7 @@ class RegistrationConfig:
                                           and math.isfinite(value) and value > 0):
                 raise EstimationError(f"{name} must be a positive finite number or None, "
                                       f"got {value!r}")
-        for name in ("map_error", "plane_tilt"):  # (m in pitches; rad)
+        for name in ("map_error", "plane_tilt", "lattice_noise"):  # (pitches; rad; m)
             value = getattr(self, name)
             if value is not None and not (isinstance(value, (int, float))
                                           and not isinstance(value, bool)
@@ -835,6 +836,29 @@ class Registration:
         # the lattice's corner voxels lie exactly at sqrt(3) pitches: a hair more includes them
         radius = self.surface_radius
         return None if radius is None else radius * (1 + 1e-6)
+
+    def _averaged_lattice_points(self, target_idx: np.ndarray):
+        """Return ``neighbourhood(rows)`` for :func:`sawtooth_information`: the target points
+        whose mean is each matched pair's target position (the ``local_means`` rule: the 27
+        nearest within the radius, or the point alone below ``surface_min_points``), as
+        (positions (R, K, 3), mask (R, K)); None without local surface positions."""
+        radius = self._means_radius
+        if radius is None:
+            return None
+
+        def neighbourhood(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            rows_t = target_idx[rows]
+            k = int(min(27, len(self.target)))
+            dist, idx = self.target_tree.query(self.target[rows_t], k=k)
+            dist, idx = dist.reshape(len(rows), k), idx.reshape(len(rows), k)
+            valid = dist <= radius
+            alone = valid.sum(axis=1) < self.config.surface_min_points
+            valid[alone] = False
+            valid[alone, 0] = True  # the nearest is the point itself
+            idx = np.where(idx < len(self.target), idx, 0)
+            return self.target[idx], valid
+
+        return neighbourhood
 
     def matched_points(self, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
         """Return the (source, target) positions the residuals of ``corr`` are measured between.
@@ -1436,7 +1460,8 @@ class Registration:
         if pitch is not None:
             B_model = quantisation_information(
                 sol.normals, tgt, sol.sensitivity, pitch,
-                self.target[corr.target_idx] if cfg.tilted_planes else None, cfg.plane_tilt)
+                self.target[corr.target_idx] if cfg.tilted_planes else None, cfg.plane_tilt,
+                cfg.lattice_noise, self._averaged_lattice_points(corr.target_idx))
         # model error: same-voxel pairs whose source point the noise moved across a cell wall
         crossing = None
         if sandwich and cfg.crossing_bias and isinstance(self._grid, VoxelGrid):
@@ -1934,20 +1959,12 @@ TILT_MIN_LAYERS = 1.0
 LAYER_MIN_SHARE = 0.05
 
 
-def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitch: float
-                  ) -> np.ndarray:
-    """Return (G,) bool: which slab groups are planes tilted against the lattice.
-
-    For each group (:func:`plane_groups`; ``axis`` the dominant lattice axis of each member)
-    the layer coordinate ``u`` of its matched lattice points ``centres`` (voxel centres) is
-    regressed on their two in-plane coordinates. A plane tilted against the lattice crosses
-    layers steadily: ``u`` follows the fit (R^2 >= TILT_MIN_R2), the fitted values span at
-    least TILT_MIN_LAYERS pitches, and the layers it occupies are contiguous (every layer
-    between the lowest and the highest kept one holds at least LAYER_MIN_SHARE of the
-    points). A plane parallel to the lattice has one or two layers without a trend (R^2
-    near 0); two parallel planes a few voxels apart in one slab (a step, e.g. a screen in
-    front of a wall) can give a trend too but leave an empty layer between them.
-    """
+def _layer_regression(group: np.ndarray, axis: np.ndarray, centres: np.ndarray):
+    """Per slab group, the least-squares plane of the layer coordinate ``u`` (along each
+    member's dominant lattice ``axis``) of the lattice points ``centres`` over their two
+    in-plane coordinates ``p``. Return (count (G,), u and p centred on their group's mean
+    (M,) and (M, 2), slope (G, 2), ok (G,) bool: a well-posed fit, r2 (G,), the groups'
+    mean in-plane coordinates (G, 2))."""
     n_groups = int(group.max()) + 1
     rows = np.arange(len(group))
     u = centres[rows, axis]
@@ -1970,6 +1987,27 @@ def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitc
     slope = np.c_[S_pp[:, 1, 1] * S_pu[:, 0] - S_pp[:, 0, 1] * S_pu[:, 1],
                   S_pp[:, 0, 0] * S_pu[:, 1] - S_pp[:, 0, 1] * S_pu[:, 0]] / det[:, None]
     r2 = np.einsum("gi,gi->g", slope, S_pu) / np.where(S_uu > 0.0, S_uu, 1.0)
+    mean_p = np.c_[np.bincount(group, centres[rows, (axis + 1) % 3], n_groups),
+                   np.bincount(group, centres[rows, (axis + 2) % 3], n_groups)] / count[:, None]
+    return count, u, p, slope, ok, r2, mean_p
+
+
+def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitch: float
+                  ) -> np.ndarray:
+    """Return (G,) bool: which slab groups are planes tilted against the lattice.
+
+    For each group (:func:`plane_groups`; ``axis`` the dominant lattice axis of each member)
+    the layer coordinate ``u`` of its matched lattice points ``centres`` (voxel centres) is
+    regressed on their two in-plane coordinates. A plane tilted against the lattice crosses
+    layers steadily: ``u`` follows the fit (R^2 >= TILT_MIN_R2), the fitted values span at
+    least TILT_MIN_LAYERS pitches, and the layers it occupies are contiguous (every layer
+    between the lowest and the highest kept one holds at least LAYER_MIN_SHARE of the
+    points). A plane parallel to the lattice has one or two layers without a trend (R^2
+    near 0); two parallel planes a few voxels apart in one slab (a step, e.g. a screen in
+    front of a wall) can give a trend too but leave an empty layer between them.
+    """
+    n_groups = int(group.max()) + 1
+    count, u, p, slope, ok, r2 = _layer_regression(group, axis, centres)[:6]
     fitted = np.einsum("mi,mi->m", p, slope[group])
     high = np.full(n_groups, -np.inf)
     low = np.full(n_groups, np.inf)
@@ -1992,7 +2030,8 @@ def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitc
 
 def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivity: np.ndarray,
                              pitch: float, centres: np.ndarray | None = None,
-                             tilt: float | None = None) -> np.ndarray:
+                             tilt: float | None = None, noise: float | None = None,
+                             neighbourhood=None) -> np.ndarray:
     """Return the (6, 6) score covariance ``pitch^2 / 12 V^T V`` of a lattice's quantisation.
 
     Model: a surface stored as voxel centres (an octree map) is off the true surface by an
@@ -2003,11 +2042,12 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
     sensitivity), so the pose covariance gains ``pitch^2 / 12 A^-1 V^T V A^-1``.
 
     With ``centres`` (the matched lattice points, e.g. voxel centres), slabs that are planes
-    tilted against the lattice (:func:`tilted_groups`) get no term: such a plane crosses
-    layers along itself, so its quantisation offset is a sawtooth along the plane, not one
-    common offset; it varies on the scale of the residual blocks and enters the
-    cluster-robust sandwich like point noise. Without ``centres`` every slab counts (for
-    tilted planes an upper bound: pessimistic; docs/registration.md).
+    tilted against the lattice (:func:`tilted_groups`) get no common offset: such a plane
+    crosses layers along itself, so its quantisation offset is a sawtooth along the plane.
+    Without ``centres`` every slab counts (for tilted planes an upper bound: pessimistic;
+    docs/registration.md). With ``noise`` (m, not None) too, what of the sawtooth is common
+    to the plane is added (:func:`sawtooth_information`): on a dense map it averages out
+    along the plane, on a sparse one (a single laser scan) it does not.
 
     ``tilt`` (rad): a plane that stays within its layer is stored flat, whatever its tilt
     against the lattice up to about ``pitch / L`` (L its extent), so the map loses that
@@ -2028,6 +2068,9 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
         aligned = ~tilted_groups(group, axis, centres, pitch)
     V[~aligned] = 0.0
     info = pitch ** 2 / 12.0 * V.T @ V
+    if centres is not None and noise is not None and not aligned.all():
+        info = info + sawtooth_information(group, ~aligned[group], sign, axis, normals,
+                                           sensitivity, centres, pitch, noise, neighbourhood)
     if tilt:
         count = np.bincount(group, minlength=n_groups).astype(float)
         rows = np.arange(len(group))
@@ -2041,6 +2084,69 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
             np.add.at(T_a, group, (sign * dx)[:, None] * sensitivity)
             info = info + (T_a * variance[:, None]).T @ T_a
     return info
+
+
+# Harmonics of the sawtooth term (its variance's tail beyond m is about 1 / (2 pi^2 m) of
+# pitch^2, under 1 % of the uniform offset's at m = 64); fewer where the noise damped them
+SAWTOOTH_HARMONICS = 64
+
+
+def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarray,
+                         axis: np.ndarray, normals: np.ndarray, sensitivity: np.ndarray,
+                         centres: np.ndarray, pitch: float, noise: float,
+                         neighbourhood=None) -> np.ndarray:
+    """Return the (6, 6) score covariance of the quantisation of planes tilted against a
+    lattice: the part of each plane's sawtooth that its matched points do not average out.
+
+    A plane tilted against the lattice is stored as a staircase: at in-plane position x its
+    voxel centre lies ``pitch (1/2 - frac(f(x) / pitch + phi))`` off the plane along the
+    lattice axis, f the plane's layer coordinate there (each group's least-squares plane of
+    its matched ``centres``, :func:`_layer_regression`) and phi the grid's unknown phase,
+    uniform. Over phi, two such offsets at f_j and f_k covary as ``pitch^2 K(f_j - f_k)``,
+    ``K(d) = sum_m cos(2 pi m d / pitch) / (2 pi^2 m^2)``, so the score sums gain
+
+        pitch^2 sum_m (|Re Z_m|^2 + |Im Z_m|^2) / (2 pi^2 m^2) per plane,
+        Z_m = sum_k c_m z_mk v_k,   v_k = sign_k |n_k,axis| sensitivity_k.
+
+    ``z_mk = exp(2 pi i m f_k / pitch)``, averaged over the lattice points whose mean is the
+    pair's matched position where ``neighbourhood`` gives them (the local surface means:
+    ``neighbourhood(rows)`` returns their positions (R, K, 3) and a (R, K) mask; they average
+    the staircase over a 3x3x3 block). ``c_m = exp(-2 pi^2 m^2 noise^2 / pitch^2)``: the
+    surface the map was made from is spread along the axis with standard deviation
+    ``noise``, which dithers the staircase (the offset's mean over that noise is the
+    sawtooth smoothed by it; the rest varies point by point, as point noise does). A plane
+    sampled densely and evenly along its slope sums to about zero, one sampled sparsely or
+    along a few scan lines does not. ``members``: the pairs of tilted planes.
+    """
+    rows = np.flatnonzero(members)
+    if len(rows) == 0:
+        return np.zeros((6, 6))
+    count, _, _, slope, _, _, mean_p = _layer_regression(group, axis, centres)
+    g, a = group[rows], axis[rows]
+    if neighbourhood is None:
+        positions, valid = centres[rows][:, None, :], np.ones((len(rows), 1), dtype=bool)
+    else:
+        positions, valid = neighbourhood(rows)
+    # each averaged lattice point's layer coordinate on its pair's plane
+    along = np.stack([np.take_along_axis(positions, ((a + step) % 3)[:, None, None], axis=2
+                                         )[..., 0] for step in (1, 2)], axis=-1)
+    f = np.einsum("rkj,rj->rk", along - mean_p[g][:, None, :], slope[g])
+    weight = valid / valid.sum(axis=1, keepdims=True)
+    v = (sign[rows] * np.abs(normals[rows, a]))[:, None] * sensitivity[rows]
+    n_groups = len(count)
+    info = np.zeros((6, 6))
+    for m in range(1, SAWTOOTH_HARMONICS + 1):
+        damping = np.exp(-2.0 * np.pi ** 2 * m ** 2 * noise ** 2 / pitch ** 2)
+        if damping < 1e-4:
+            break
+        phase = 2.0 * np.pi * m * f / pitch
+        z = damping * np.c_[(weight * np.cos(phase)).sum(axis=1),
+                            (weight * np.sin(phase)).sum(axis=1)]
+        for part in (0, 1):
+            Z = np.zeros((n_groups, 6))
+            np.add.at(Z, g, z[:, part, None] * v)
+            info += Z.T @ Z / (2.0 * np.pi ** 2 * m ** 2)
+    return pitch ** 2 * info
 
 
 # Cell crossings of same-voxel matching (docs/registration.md, "Cell crossings"): a cell
