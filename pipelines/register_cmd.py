@@ -158,6 +158,7 @@ def _register(args, source, target, flip=None) -> dict:
             "crossing_bias_m": getattr(diagnostic, "crossing_bias", None),
             "map_error_m": getattr(diagnostic, "map_error", None),
             "plane_tilt_rad": getattr(diagnostic, "plane_tilt", None),
+            "lattice_noise_m": getattr(diagnostic, "lattice_noise", None),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:

@@ -51,6 +51,7 @@ def lattice_nees(scan):
             result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
             assert result.converged, result.reason
             assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+            assert result.diagnostic.lattice_noise == options.get("lattice_noise", 0.005)
             out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
                                  result.covariance[None])[0])
     return {key: np.array(value) for key, value in out.items()}
