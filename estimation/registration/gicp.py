@@ -722,6 +722,7 @@ class Registration:
         self._source_radius_value: float | None = None
         self._cache: NeighbourCache | None = None
         self._surface_radius: float | str | None = "unset"
+        self._block_index = None  # (the lattice's keys for sawtooth_information)
         self._pitch: float | str | None = "unset"
         self._found_pitch: float | str | None = "unset"
         self._source_pos: np.ndarray | None = None
@@ -851,26 +852,32 @@ class Registration:
         radius = self.surface_radius
         return None if radius is None else radius * (1 + 1e-6)
 
-    def _averaged_lattice_points(self, target_idx: np.ndarray):
-        """Return ``neighbourhood(rows)`` for :func:`sawtooth_information`: the target points
-        whose mean is each matched pair's target position (the ``local_means`` rule: the 27
-        nearest within the radius, or the point alone below ``surface_min_points``), as
-        (positions (R, K, 3), mask (R, K)); None without local surface positions."""
-        radius = self._means_radius
-        if radius is None:
+    def _averaged_lattice_points(self, target_idx: np.ndarray, pitch: float):
+        """Return ``neighbourhood(rows)`` for :func:`sawtooth_information`: which cells of the
+        3x3x3 block around each matched lattice point ``target_idx[rows]`` hold a map point,
+        those whose mean is the pair's target position (the ``local_means`` rule on a lattice:
+        the block lies within sqrt(3) pitches; the point alone below ``surface_min_points``),
+        as a (R, 27) mask over :data:`BLOCK_OFFSETS`; None without local surface positions."""
+        if self._means_radius is None:
             return None
+        if self._block_index is None:
+            keys = np.round((self.target - self.target[0]) / pitch).astype(np.int64)
+            lo = keys.min(axis=0) - 1
+            dims = keys.max(axis=0) - lo + 2
+            code = ((keys[:, 0] - lo[0]) * dims[1] + keys[:, 1] - lo[1]) * dims[2] \
+                + keys[:, 2] - lo[2]
+            self._block_index = (keys, np.sort(code), lo, dims)
+        keys, codes, lo, dims = self._block_index
 
-        def neighbourhood(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            rows_t = target_idx[rows]
-            k = int(min(27, len(self.target)))
-            dist, idx = self.target_tree.query(self.target[rows_t], k=k)
-            dist, idx = dist.reshape(len(rows), k), idx.reshape(len(rows), k)
-            valid = dist <= radius
-            alone = valid.sum(axis=1) < self.config.surface_min_points
-            valid[alone] = False
-            valid[alone, 0] = True  # the nearest is the point itself
-            idx = np.where(idx < len(self.target), idx, 0)
-            return self.target[idx], valid
+        def neighbourhood(rows: np.ndarray) -> np.ndarray:
+            k = keys[target_idx[rows]][:, None, :] + BLOCK_OFFSETS[None, :, :]
+            code = ((k[..., 0] - lo[0]) * dims[1] + k[..., 1] - lo[1]) * dims[2] \
+                + k[..., 2] - lo[2]
+            pos = np.minimum(np.searchsorted(codes, code), len(codes) - 1)
+            occupied = codes[pos] == code
+            alone = occupied.sum(axis=1) < self.config.surface_min_points
+            occupied[alone] = BLOCK_OFFSETS_CENTRE
+            return occupied
 
         return neighbourhood
 
@@ -1475,7 +1482,7 @@ class Registration:
             B_model = quantisation_information(
                 sol.normals, tgt, sol.sensitivity, pitch,
                 self.target[corr.target_idx] if cfg.tilted_planes else None, cfg.plane_tilt,
-                cfg.lattice_noise, self._averaged_lattice_points(corr.target_idx))
+                cfg.lattice_noise, self._averaged_lattice_points(corr.target_idx, pitch))
         # model error: same-voxel pairs whose source point the noise moved across a cell wall
         crossing = None
         if sandwich and cfg.crossing_bias and isinstance(self._grid, VoxelGrid):
@@ -2105,6 +2112,13 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
 # Harmonics of the sawtooth term (its variance's tail beyond m is about 1 / (2 pi^2 m) of
 # pitch^2, under 1 % of the uniform offset's at m = 64); fewer where the noise damped them
 SAWTOOTH_HARMONICS = 64
+# the 3x3x3 block of lattice cells a local surface mean averages (docs: surface_radius)
+BLOCK_OFFSETS = np.array([(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1)
+                          for k in (-1, 0, 1)], dtype=np.int64)
+BLOCK_OFFSETS_CENTRE = np.all(BLOCK_OFFSETS == 0, axis=1)
+# per lattice axis a: the block's offsets along the two in-plane axes (a + 1, a + 2), (27, 2)
+BLOCK_INPLANE = np.stack([BLOCK_OFFSETS[:, [(a + 1) % 3, (a + 2) % 3]] for a in range(3)]
+                         ).astype(float)
 
 
 def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarray,
@@ -2126,42 +2140,47 @@ def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarra
 
     ``z_mk = exp(2 pi i m f_k / pitch)``, averaged over the lattice points whose mean is the
     pair's matched position where ``neighbourhood`` gives them (the local surface means:
-    ``neighbourhood(rows)`` returns their positions (R, K, 3) and a (R, K) mask; they average
-    the staircase over a 3x3x3 block). ``c_m = exp(-2 pi^2 m^2 noise^2 / pitch^2)``: the
-    surface the map was made from is spread along the axis with standard deviation
-    ``noise``, which dithers the staircase (the offset's mean over that noise is the
-    sawtooth smoothed by it; the rest varies point by point, as point noise does). A plane
-    sampled densely and evenly along its slope sums to about zero, one sampled sparsely or
-    along a few scan lines does not. ``members``: the pairs of tilted planes.
+    ``neighbourhood(rows)`` returns a (R, 27) mask of the occupied cells of each pair's
+    3x3x3 block, :data:`BLOCK_OFFSETS`; they average the staircase over the block).
+    ``c_m = exp(-2 pi^2 m^2 noise^2 / pitch^2)``: the surface the map was made from is
+    spread along the axis with standard deviation ``noise``, which dithers the staircase
+    (the offset's mean over that noise is the sawtooth smoothed by it; the rest varies point
+    by point, as point noise does). A plane sampled densely and evenly along its slope sums
+    to about zero, one sampled sparsely or along a few scan lines does not. ``members``:
+    the pairs of tilted planes.
     """
     rows = np.flatnonzero(members)
     if len(rows) == 0:
         return np.zeros((6, 6))
-    count, _, _, slope, _, _, mean_p = _layer_regression(group, axis, centres)
+    count, _, p, slope, _, _, _ = _layer_regression(group, axis, centres)
     g, a = group[rows], axis[rows]
+    # the pair's own layer coordinate on its plane, and the averaged block's phase offsets
+    # (the block's cells lie whole pitches along the plane's two in-plane axes)
+    f = np.einsum("rj,rj->r", p[rows], slope[g]) / pitch
+    occupied = (np.ones((len(rows), 1), dtype=bool) if neighbourhood is None
+                else neighbourhood(rows))
     if neighbourhood is None:
-        positions, valid = centres[rows][:, None, :], np.ones((len(rows), 1), dtype=bool)
-    else:
-        positions, valid = neighbourhood(rows)
-    # each averaged lattice point's layer coordinate on its pair's plane
-    along = np.stack([np.take_along_axis(positions, ((a + step) % 3)[:, None, None], axis=2
-                                         )[..., 0] for step in (1, 2)], axis=-1)
-    f = np.einsum("rkj,rj->rk", along - mean_p[g][:, None, :], slope[g])
-    weight = valid / valid.sum(axis=1, keepdims=True)
+        d = np.zeros((len(rows), 1))
+    else:  # (R, 27): each block cell's whole pitches along the plane's in-plane axes
+        inplane = BLOCK_INPLANE[a]
+        d = inplane[..., 0] * slope[g, 0, None] + inplane[..., 1] * slope[g, 1, None]
+    weight = occupied / occupied.sum(axis=1, keepdims=True)
     v = (sign[rows] * np.abs(normals[rows, a]))[:, None] * sensitivity[rows]
-    n_groups = len(count)
+    # per-plane sums by sorted group (np.add.at is slow)
+    order = np.argsort(g, kind="stable")
+    starts = np.flatnonzero(np.r_[True, np.diff(g[order]) != 0])
+    base, step_k = np.exp(2j * np.pi * f), np.exp(2j * np.pi * d)
+    z_own, z_block = np.ones(len(rows), complex), np.ones(d.shape, complex)
     info = np.zeros((6, 6))
     for m in range(1, SAWTOOTH_HARMONICS + 1):
         damping = np.exp(-2.0 * np.pi ** 2 * m ** 2 * noise ** 2 / pitch ** 2)
         if damping < 1e-4:
             break
-        phase = 2.0 * np.pi * m * f / pitch
-        z = damping * np.c_[(weight * np.cos(phase)).sum(axis=1),
-                            (weight * np.sin(phase)).sum(axis=1)]
-        for part in (0, 1):
-            Z = np.zeros((n_groups, 6))
-            np.add.at(Z, g, z[:, part, None] * v)
-            info += Z.T @ Z / (2.0 * np.pi ** 2 * m ** 2)
+        z_own = z_own * base
+        z_block = z_block * step_k
+        z = damping * z_own * (weight * z_block).sum(axis=1)
+        Z = np.add.reduceat(z[order, None] * v[order], starts, axis=0)
+        info += (Z.real.T @ Z.real + Z.imag.T @ Z.imag) / (2.0 * np.pi ** 2 * m ** 2)
     return pitch ** 2 * info
 
 
