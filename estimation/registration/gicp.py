@@ -182,7 +182,8 @@ class RegistrationConfig:
     tilted_planes : with a quantisation term, slabs whose matched lattice points cross
         layers along a planar trend (:func:`tilted_groups`: planes tilted against the lattice,
         whose quantisation is a sawtooth along the plane, not one common offset) get no
-        term. False = every slab one common offset (an upper bound; pessimistic on maps tilted
+        common offset (but the sawtooth term, ``lattice_noise``). False = every slab one
+        common offset (an upper bound; pessimistic on maps tilted
         against their lattice: mean NEES 0.40 against 6.07 on the dense voxel map test)
     plane_tilt : with a quantisation term, the standard deviation (rad) of the tilt of each
         slab that keeps one common offset, about each of its in-plane axes, capped at
