@@ -251,6 +251,23 @@ def phase_covariance(source: np.ndarray, maps: list[np.ndarray], T: np.ndarray) 
     return xi.T @ xi / (len(maps) - 1)
 
 
+def half_room_trials(points: np.ndarray, labels: np.ndarray, target: SemanticCloud,
+                     trials: int, options: dict[str, dict], source_points: int = SOURCE_POINTS,
+                     offset: str = "small"):
+    """Yield (key, RegistrationResult, T_target_source) of ours (GICP-SE(3)) for seeds 0 ..
+    ``trials - 1``, each seed's half-room source and start registered once per ``options``
+    key (further RegistrationConfig fields): paired comparisons of options on one map."""
+    metres, degrees, d0 = OFFSETS[offset]
+    for seed in range(trials):
+        for key, extra in options.items():
+            rng = np.random.default_rng(seed)
+            source, T_gt = half_room_source(points, labels, rng, source_points)
+            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres,
+                                                degrees)
+            result, _ = register_ours(source, target, init, (d0, D_FINAL), **extra)
+            yield key, result, T_gt
+
+
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="half",
              phases=0, source_points=SOURCE_POINTS, ours: dict | None = None) -> dict:
     """Return every trial's numbers of one (room, map kind, offset, setting) cell.

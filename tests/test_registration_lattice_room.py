@@ -15,11 +15,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import half_room_source, labelled, voxel_map
+from benchmarks.registration_indoor import half_room_trials, labelled, voxel_map
 from estimation.covariance import check_consistency, nees
 from estimation.registration import pose_error
-from estimation.registration.metrics import offset_about_centroid
 
 N_TRIALS = 8
 PITCH = 0.03
@@ -35,20 +33,13 @@ def office(centroid_room):
 def nees_by_option(office):
     """NEES of the same N_TRIALS half-room starts with the tilt term (1 mrad) and without it
     (the default)."""
-    points, labels, target = office
-    metres, degrees, d0 = OFFSETS["small"]
     out = {"tilt": [], "no tilt": []}
-    for seed in range(N_TRIALS):
-        for key, options in (("tilt", {"plane_tilt": 1e-3}), ("no tilt", {})):
-            rng = np.random.default_rng(seed)
-            source, T_gt = half_room_source(points, labels, rng, 15000)
-            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres,
-                                                degrees)
-            result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
-            assert result.converged, result.reason
-            assert result.diagnostic.quantisation_pitch == pytest.approx(PITCH)
-            out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
-                                 result.covariance[None])[0])
+    options = {"tilt": {"plane_tilt": 1e-3}, "no tilt": {}}
+    for key, result, T_gt in half_room_trials(*office, N_TRIALS, options, 15000):
+        assert result.converged, result.reason
+        assert result.diagnostic.quantisation_pitch == pytest.approx(PITCH)
+        out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
+                             result.covariance[None])[0])
     return {key: np.array(value) for key, value in out.items()}
 
 

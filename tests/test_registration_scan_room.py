@@ -19,11 +19,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import half_room_source, labelled, scan_room, voxel_map
+from benchmarks.registration_indoor import half_room_trials, labelled, scan_room, voxel_map
 from estimation.covariance import check_consistency, nees
 from estimation.registration import pose_error
-from estimation.registration.metrics import offset_about_centroid
 
 N_TRIALS = 8
 
@@ -40,20 +38,15 @@ def lattice_nees(scan):
     default config (the sawtooth term of tilted planes, 5 mm) and without the term."""
     points, labels, _ = scan
     target = labelled(*voxel_map(points, labels, "centres"))
-    metres, degrees, d0 = OFFSETS["small"]
     out = {"default": [], "no sawtooth": []}
-    for seed in range(N_TRIALS):
-        for key, options in (("default", {}), ("no sawtooth", {"lattice_noise": None})):
-            rng = np.random.default_rng(seed)
-            source, T_gt = half_room_source(points, labels, rng, 15000)
-            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres,
-                                                degrees)
-            result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
-            assert result.converged, result.reason
-            assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
-            assert result.diagnostic.lattice_noise == options.get("lattice_noise", 0.005)
-            out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
-                                 result.covariance[None])[0])
+    options = {"default": {}, "no sawtooth": {"lattice_noise": None}}
+    for key, result, T_gt in half_room_trials(points, labels, target, N_TRIALS, options,
+                                              15000):
+        assert result.converged, result.reason
+        assert result.diagnostic.quantisation_pitch == pytest.approx(0.03)
+        assert result.diagnostic.lattice_noise == options[key].get("lattice_noise", 0.005)
+        out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
+                             result.covariance[None])[0])
     return {key: np.array(value) for key, value in out.items()}
 
 
@@ -74,24 +67,17 @@ def test_covariance_is_consistent_on_a_single_scan_lattice_map(lattice_nees):
 def nees_by_option(scan):
     """NEES of the same N_TRIALS half-scan starts with the default config and with the map
     term off (``map_error=None``)."""
-    points, labels, target = scan
-    metres, degrees, d0 = OFFSETS["small"]
     out = {"default": [], "no map term": []}
-    for seed in range(N_TRIALS):
-        for key, options in (("default", {}), ("no map term", {"map_error": None})):
-            rng = np.random.default_rng(seed)
-            source, T_gt = half_room_source(points, labels, rng, 15000)
-            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres,
-                                                degrees)
-            result, _ = register_ours(source, target, init, (d0, D_FINAL), **options)
-            assert result.converged, result.reason
-            assert pose_error(result.T, T_gt).t_err_m < 0.01
-            if key == "default":
-                # the map's grid is found, so the term is in and the run is trusted
-                assert result.diagnostic.map_error == pytest.approx(0.03 * 0.03, rel=1e-3)
-                assert result.diagnostic.trusted
-            out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
-                                 result.covariance[None])[0])
+    options = {"default": {}, "no map term": {"map_error": None}}
+    for key, result, T_gt in half_room_trials(*scan, N_TRIALS, options, 15000):
+        assert result.converged, result.reason
+        assert pose_error(result.T, T_gt).t_err_m < 0.01
+        if key == "default":
+            # the map's grid is found, so the term is in and the run is trusted
+            assert result.diagnostic.map_error == pytest.approx(0.03 * 0.03, rel=1e-3)
+            assert result.diagnostic.trusted
+        out[key].append(nees(pose_error(result.T, T_gt).tangent[None],
+                             result.covariance[None])[0])
     return {key: np.array(value) for key, value in out.items()}
 
 
