@@ -4,8 +4,9 @@ A part of a room registered to the room's 3 cm voxel-centroid map has an error p
 source's density does not shrink: the map rounds edges, thins small objects and cuts surface
 layers where its grid lies, coherently over whole objects. The term models it as a random
 offset of every ``map_error_block`` cube of the map (standard deviation ``map_error`` x pitch
-per axis) and propagates it through the fixed-association bread. Checked here, on the real
-TUM room of tests/test_registration_indoor.py (every 10th frame):
+per axis where the map's surface is half a pitch thick, in proportion to its local thickness
+elsewhere; thirteenth round) and propagates it through the fixed-association bread.
+Checked here, on the real TUM room of tests/test_registration_indoor.py (every 10th frame):
 
 * the propagation: displacing the map's cubes by such random offsets moves the estimate by
   about what the term predicts (mean NEES of the moves against it 3.3: the term is somewhat
@@ -34,11 +35,13 @@ def room(centroid_room):
     return centroid_room("tum", 10)
 
 
-def _displaced(target: np.ndarray, block: float, sigma: float, rng) -> np.ndarray:
+def _displaced(target: np.ndarray, block: float, sigma: np.ndarray, rng) -> np.ndarray:
+    """``target`` with each ``block`` cube moved by one random offset, scaled per point by
+    ``sigma`` (m)."""
     cubes = np.floor(target / block).astype(np.int64)
     _, inverse = np.unique(cubes, axis=0, return_inverse=True)
     inverse = inverse.reshape(-1)
-    return target + rng.normal(scale=sigma, size=(inverse.max() + 1, 3))[inverse]
+    return target + sigma[:, None] * rng.normal(size=(inverse.max() + 1, 3))[inverse]
 
 
 @pytest.mark.slow
@@ -53,11 +56,13 @@ def test_the_term_predicts_how_displaced_map_blocks_move_the_estimate(room):
     sol = reg.solution_terms(base.T, D_FINAL)
     B, s = reg.map_error_information(sol)
     predicted = np.linalg.solve(sol.A, np.linalg.solve(sol.A, B).T) / s ** 2  # per unit offset
-    sigma = 0.002
+    sigma = 0.002  # where the map's surface is MAP_ERROR_THICKNESS pitches thick
+    scale = reg.map_thickness(np.arange(len(target.points))) / (
+        gicp.MAP_ERROR_THICKNESS * reg._grid.pitch)
     rng = np.random.default_rng(7)
     moves = []
     for _ in range(12):
-        moved_map = _displaced(target.points, cfg.map_error_block, sigma, rng)
+        moved_map = _displaced(target.points, cfg.map_error_block, sigma * scale, rng)
         T = Registration(source.points, moved_map, cfg).run(base.T).T
         moves.append(gtsam.Pose3.Logmap(gtsam.Pose3(base.T).between(gtsam.Pose3(T))))
     values = [nees(m, sigma ** 2 * predicted) for m in moves]
@@ -77,7 +82,7 @@ def test_a_dense_source_is_consistent_only_with_the_term(room):
         source, T_gt, init, d0 = small_offset_start(points, labels, seed, 60000)
         r, _ = register_ours(source, target, init, (d0, D_FINAL))
         off, _ = register_ours(source, target, init, (d0, D_FINAL), map_error=None)
-        assert r.converged and r.diagnostic.map_error == pytest.approx(0.03 * 0.03, rel=1e-3)
+        assert r.converged and r.diagnostic.map_error == pytest.approx(0.035 * 0.03, rel=1e-3)
         err = pose_error(r.T, T_gt)
         with_term.append(nees(err.tangent, r.covariance))
         without.append(nees(err.tangent, off.covariance))

@@ -241,15 +241,20 @@ class RegistrationConfig:
     map_error : with same-voxel matching (a part of a room against the room's voxel-centroid
         map), the map's representation error: the map's surfaces within each cube of edge
         ``map_error_block`` are taken as displaced together by a random 3-D offset of
-        standard deviation ``map_error`` times the grid's pitch per axis
-        (:meth:`Registration.map_error_information`); the covariance is the Loewner maximum
-        of that term's and the point-noise sandwich's. A centroid map rounds edges, thins
-        small objects and cuts surface layers where its grid happens to lie, coherently over
-        whole objects, so the fit's error has a part that does not shrink with the source's
-        density: real rooms against their 3 cm map, mean NEES 8.4 / 14 / 31 (TUM) at 15k /
-        60k / 150k source points without the term, 5.1 (15k) and 4.2 (150k) with it. An
-        empirical size: 0.026-0.042 was needed on the two rooms at 2, 3 and 5 cm
-        (docs/registration.md, "The map's representation error"). None = not added
+        standard deviation ``map_error`` times the grid's pitch per axis where the map's
+        surface is MAP_ERROR_THICKNESS (half a pitch) thick, in proportion to its local
+        thickness elsewhere (:meth:`Registration.map_thickness`: the standard deviation of
+        its nearest map points along their normal; :meth:`Registration.map_error_information`);
+        the covariance is the Loewner maximum of that term's and the point-noise sandwich's.
+        A centroid map rounds edges, thins small objects and cuts surface layers where its
+        grid happens to lie, coherently over whole objects, so the fit's error has a part
+        that does not shrink with the source's density: real rooms against their 3 cm map,
+        mean NEES 8.4 / 14 / 31 (TUM) at 15k / 60k / 150k source points without the term.
+        Thick layers (the stacked centroid sheets of fused RGB-D rooms, 13-17 mm) carry it,
+        thin ones (a single laser scan's map, 3 mm) hardly: the size needed on the four
+        RGB-D room maps at 15k points spreads 0.055-0.068 of the local thickness where it
+        spread 0.018-0.027 pitch unscaled, which over-covered the scan 3-6x (docs/
+        registration.md, "A single laser scan's map"). Empirical. None = not added
     map_error_block : edge (m) of the cubes displaced together by ``map_error`` (0.8 m, an
         object's scale; 0.4 m needs a larger ``map_error`` and fits as well)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
@@ -298,7 +303,7 @@ class RegistrationConfig:
     boundary_gate: float | None = 0.3
     voxel_matching: float | None = 10.0
     crossing_bias: bool = True
-    map_error: float | None = 0.03
+    map_error: float | None = 0.035
     map_error_block: float = 0.8
 
     def __post_init__(self):
@@ -1108,10 +1113,27 @@ class Registration:
         does not change.
         """
         cfg = self.config
-        s = cfg.map_error * self._grid.pitch
-        G = cluster_sums(sol.tgt, sol.shift_sensitivity().reshape(-1, 18),
-                         cfg.map_error_block).reshape(-1, 6, 3)
+        pitch = self._grid.pitch
+        s = cfg.map_error * pitch
+        # each pair's offset scales with its map surface's local thickness
+        weight = self.map_thickness(sol.corr.target_idx) / (MAP_ERROR_THICKNESS * pitch)
+        G = cluster_sums(sol.tgt, (sol.shift_sensitivity() * weight[:, None, None]
+                                   ).reshape(-1, 18), cfg.map_error_block).reshape(-1, 6, 3)
         return s ** 2 * np.einsum("bik,bjk->ij", G, G), s
+
+    def map_thickness(self, target_idx: np.ndarray) -> np.ndarray:
+        """Return the local thickness (m) of the target's surface at each ``target_idx``:
+        the square root of the smallest eigenvalue of the scatter of its ``k_neighbours``
+        nearest target points (the layer's standard deviation along its normal)."""
+        rows, inverse = np.unique(target_idx, return_inverse=True)
+        k = int(min(self.config.k_neighbours, len(self.target)))
+        _, idx = self.target_tree.query(self.target[rows], k=k,
+                                        workers=-1 if len(rows) > 5000 else 1)
+        nb = self.target[idx.reshape(len(rows), k)]
+        nb = nb - nb.mean(axis=1, keepdims=True)
+        scatter = np.einsum("rki,rkj->rij", nb, nb) / k
+        smallest = np.linalg.eigvalsh(scatter)[:, 0]
+        return np.sqrt(np.maximum(smallest, 0.0))[inverse.reshape(-1)]
 
     def _whitening(self, corr: Correspondences, R: np.ndarray) -> np.ndarray:
         """Return the (M, 3, 3) whitening of ``corr`` at rotation ``R`` (:func:`whitening`),
@@ -1936,6 +1958,12 @@ INSIDE_MARGIN = 0.1
 # on both rooms, 15k and 150k points), in another basin 1-2 % do not (0.983 and 0.989 in the
 # two ICL-NUIM starts that converged 13-17 cm off inside the map)
 INSIDE_TRUSTED_COVERAGE = 0.995
+
+# The map term's offsets are map_error pitches where the map's surface is MAP_ERROR_THICKNESS
+# pitches thick (its local layer's standard deviation; the RGB-D rooms' 3 cm centroid maps:
+# median 0.42-0.56), proportionally less or more elsewhere (docs/registration.md, "A single
+# laser scan's map")
+MAP_ERROR_THICKNESS = 0.5
 
 
 def source_inside_target(source_covered: float, target_covered: float) -> bool:
