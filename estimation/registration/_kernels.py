@@ -80,11 +80,14 @@ def regularise_covariances(cov: np.ndarray, epsilon: float) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def neighbour_covariances(points: np.ndarray, idx: np.ndarray, epsilon: float) -> np.ndarray:
+def neighbour_covariances(points: np.ndarray, idx: np.ndarray, epsilon: float,
+                          thickness: np.ndarray) -> np.ndarray:
     """Plane-regularised covariances from each row of (M, k) neighbour indices into ``points``.
 
     One pass per point (mean, scatter, smallest eigenvector, ``I - (1 - epsilon) n n^T``)
     instead of numpy stacks of (M, k, 3) temporaries (measured 3-5x cheaper at k = 20).
+    Also writes each neighbourhood's thickness into ``thickness`` (M,): its standard
+    deviation along the normal n, ``sqrt(n^T S n)``, S the scatter (the map term's scale).
     """
     m_rows = idx.shape[0]
     k = idx.shape[1]
@@ -114,6 +117,9 @@ def neighbour_covariances(points: np.ndarray, idx: np.ndarray, epsilon: float) -
             a22 += dz * dz
         nx, ny, nz = smallest_eigenvector(a00 / k, a01 / k, a02 / k, a11 / k, a12 / k, a22 / k)
         _write_plane(out[m], s, nx, ny, nz)
+        along = (nx * nx * a00 + ny * ny * a11 + nz * nz * a22
+                 + 2.0 * (nx * ny * a01 + nx * nz * a02 + ny * nz * a12)) / k
+        thickness[m] = np.sqrt(max(along, 0.0))
     return out
 
 

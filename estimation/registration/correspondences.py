@@ -74,17 +74,23 @@ def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
 def neighbourhoods(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
                    tree: cKDTree | None = None, rows: np.ndarray | None = None,
                    radius: float | None = None, min_points: int = 6,
-                   k_max: int = 27) -> tuple[np.ndarray, np.ndarray | None]:
+                   k_max: int = 27, thickness: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Return (covariances (M, 3, 3), local means (M, 3) or None) from ONE k-NN query.
 
     Covariances as :func:`point_covariances`; with ``radius`` also :func:`local_means` (the
-    mean of the ``k_max`` nearest points within ``radius``), which share the query.
+    mean of the ``k_max`` nearest points within ``radius``), which share the query. With
+    ``thickness`` (M,), each neighbourhood's standard deviation along its normal is written
+    into it (0 where fewer than 3 points).
     """
     points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     n = len(points)
     query = points if rows is None else points[rows]
+    if thickness is None:
+        thickness = np.empty(len(query))
     if n < 3:
         covs = np.broadcast_to(np.eye(3), (len(query), 3, 3)).copy()
+        thickness[:] = 0.0
         return covs, (None if radius is None else query.copy())
     k_cov = int(min(max(k, 3), n))
     k_query = k_cov if radius is None else int(min(max(k_cov, k_max), n))
@@ -92,7 +98,7 @@ def neighbourhoods(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
     dist, idx = tree.query(query, k=k_query, workers=_workers(len(query), k_query))
     idx = np.ascontiguousarray(idx, dtype=np.int64)
     covs = _kernels.neighbour_covariances(points, np.ascontiguousarray(idx[:, :k_cov]),
-                                          float(epsilon))
+                                          float(epsilon), thickness)
     if radius is None:
         return covs, None
     return covs, _means_within(points, query, dist[:, :k_max], idx[:, :k_max], radius,
@@ -127,6 +133,7 @@ class LazyCovariances:
         self.radius = radius
         self.min_points = min_points
         self.values = np.empty((len(points), 3, 3))
+        self.thickness_values = np.empty(len(points))
         self.mean_values = None if radius is None else np.empty((len(points), 3))
         self.done = np.zeros(len(points), bool)
         self._rank: np.ndarray | None = None
@@ -146,9 +153,11 @@ class LazyCovariances:
             # faster than the cloud's own order, e.g. a voxel filter's hash order); each
             # row's neighbours do not depend on the order
             rows = rows[np.argsort(self._leaf_rank[rows])]
+        thickness = np.empty(len(rows))
         covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree, rows,
-                                     self.radius, self.min_points)
+                                     self.radius, self.min_points, thickness=thickness)
         self.values[rows] = covs
+        self.thickness_values[rows] = thickness
         if means is not None:
             self.mean_values[rows] = means
         self.done[rows] = True
@@ -182,6 +191,11 @@ class LazyCovariances:
         """Return the whole (N, 3, 3) array with (at least) the rows ``idx`` computed."""
         self._fill(idx)
         return self.values
+
+    def thickness(self, idx: np.ndarray) -> np.ndarray:
+        """Return the neighbourhoods' thickness (m, along their normals) of rows ``idx``."""
+        self._fill(idx)
+        return self.thickness_values[idx]
 
     def means(self, idx: np.ndarray) -> np.ndarray:
         """Return the local means of rows ``idx`` (requires ``radius``)."""

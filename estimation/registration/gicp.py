@@ -432,7 +432,8 @@ class CovarianceDiagnostic:
         (``RegistrationConfig.crossing_bias``) that was added, or None; its covariance is
         part of ``model_covariance``
     map_error : the standard deviation (m, per axis) of the blocks' offsets of the
-        map-representation term (``RegistrationConfig.map_error``) that was used, or None;
+        map-representation term (``RegistrationConfig.map_error``) that was used where the
+        map's surface is MAP_ERROR_THICKNESS pitches thick, or None;
         what it adds to the point-noise sandwich is part of ``model_covariance``
     plane_tilt : the standard deviation (rad) of the tilts of the quantisation term's planes
         (``RegistrationConfig.plane_tilt``) that was used, or None (no quantisation term, or
@@ -1122,18 +1123,16 @@ class Registration:
         return s ** 2 * np.einsum("bik,bjk->ij", G, G), s
 
     def map_thickness(self, target_idx: np.ndarray) -> np.ndarray:
-        """Return the local thickness (m) of the target's surface at each ``target_idx``:
-        the square root of the smallest eigenvalue of the scatter of its ``k_neighbours``
-        nearest target points (the layer's standard deviation along its normal)."""
+        """Return the local thickness (m) of the target's surface at each ``target_idx``: the
+        standard deviation along the normal of its ``k_neighbours`` nearest target points,
+        from the query of its covariance (given covariances: a query of its own)."""
+        if isinstance(self.target_cov, LazyCovariances):
+            return self.target_cov.thickness(target_idx)
         rows, inverse = np.unique(target_idx, return_inverse=True)
-        k = int(min(self.config.k_neighbours, len(self.target)))
-        _, idx = self.target_tree.query(self.target[rows], k=k,
-                                        workers=-1 if len(rows) > 5000 else 1)
-        nb = self.target[idx.reshape(len(rows), k)]
-        nb = nb - nb.mean(axis=1, keepdims=True)
-        scatter = np.einsum("rki,rkj->rij", nb, nb) / k
-        smallest = np.linalg.eigvalsh(scatter)[:, 0]
-        return np.sqrt(np.maximum(smallest, 0.0))[inverse.reshape(-1)]
+        thickness = np.empty(len(rows))
+        neighbourhoods(self.target, self.config.k_neighbours, self.config.epsilon,
+                       self.target_tree, rows, thickness=thickness)
+        return thickness[inverse.reshape(-1)]
 
     def _whitening(self, corr: Correspondences, R: np.ndarray) -> np.ndarray:
         """Return the (M, 3, 3) whitening of ``corr`` at rotation ``R`` (:func:`whitening`),
