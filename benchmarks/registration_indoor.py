@@ -140,10 +140,9 @@ def room_cloud(name: str, step: int = 5, data: Path = DATA) -> tuple[np.ndarray,
 def scan_room(path: Path, max_range: float = SCAN_RANGE) -> tuple[np.ndarray, np.ndarray]:
     """Return (points, geometric class labels) of OctoMap's laser scan within ``max_range``
     (m) of its sensor (one ``x y z`` per line, read as float32 as OctoMap reads it)."""
-    import bz2
+    from benchmarks.registration_real import read_scan_dat
 
-    with bz2.open(path, "rt") as fh:
-        points = np.loadtxt(fh, dtype=np.float32).astype(float)
+    points = read_scan_dat(path, np.float32)
     points = points[np.linalg.norm(points, axis=1) <= max_range]
     return points, geometric_labels(points, 0.15)
 
@@ -409,13 +408,13 @@ def main(argv=None) -> int:
                         "(the term off; default: the config's default)")
     args = parser.parse_args(argv)
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
-    for flag, field in (("map_error", "map_error"), ("lattice_noise", "lattice_noise")):
-        value = getattr(args, flag)
+    for field in ("map_error", "lattice_noise"):
+        value = getattr(args, field)
         if value is not None:
             try:
                 ours[field] = None if value.lower() == "none" else float(value)
             except ValueError:
-                parser.error(f"--{flag.replace('_', '-')} must be a number or 'none', "
+                parser.error(f"--{field.replace('_', '-')} must be a number or 'none', "
                              f"got {value!r}")
     if set(args.rooms.split(",")) - set(ROOMS):
         parser.error(f"--rooms must be from {', '.join(ROOMS)}")

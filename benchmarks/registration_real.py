@@ -180,16 +180,21 @@ def load_kitti(directory: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return src, tgt, T
 
 
-def load_scan_pair(directory: Path, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Return (source, target, T_target_source): two disjoint, partly overlapping samples of
-    OctoMap's real scan, the source moved by a known random rigid transform (see module doc).
-    """
-    path = directory / "scan.dat.bz2"
+def read_scan_dat(path: Path, dtype=float) -> np.ndarray:
+    """Return the (N, 3) points of OctoMap's ``scan.dat.bz2`` (one ``x y z`` per line), parsed
+    as ``dtype`` (OctoMap itself reads float32) and returned as float64."""
     if not path.is_file():
         raise FileNotFoundError(f"{path} not found (OctoMap's octomap/share/data/scan.dat.bz2); "
                                 "pass its folder as --octomap-data")
     with bz2.open(path, "rt") as fh:
-        points = np.loadtxt(fh, dtype=float).reshape(-1, 3)
+        return np.loadtxt(fh, dtype=dtype).reshape(-1, 3).astype(float)
+
+
+def load_scan_pair(directory: Path, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Return (source, target, T_target_source): two disjoint, partly overlapping samples of
+    OctoMap's real scan, the source moved by a known random rigid transform (see module doc).
+    """
+    points = read_scan_dat(directory / "scan.dat.bz2")
     rng = np.random.default_rng(seed)
     half = rng.permutation(len(points))
     first, second = points[half[: len(points) // 2]], points[half[len(points) // 2:]]

@@ -316,10 +316,17 @@ class VoxelGrid:
     def lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return (hit (M,) bool, the map row of the cell each point lies in, -1 where the
         cell holds no map point)."""
-        k = np.floor((points - self.origin) / self.pitch).astype(np.int64) - self.lo
-        inside = np.all((k >= 0) & (k < self.dims), axis=1)
-        k = np.where(inside[:, None], k, 0)
-        key = (k[:, 0] * self.dims[1] + k[:, 1]) * self.dims[2] + k[:, 2]
+        return self.rows_of_cells(self.cell_of(points))
+
+    def cell_of(self, points: np.ndarray) -> np.ndarray:
+        """Return the (..., 3) integer cell (from the box's lowest cell) of each point."""
+        return np.floor((points - self.origin) / self.pitch).astype(np.int64) - self.lo
+
+    def rows_of_cells(self, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`lookup` of (..., 3) integer cells (:meth:`cell_of`, cells beside them)."""
+        inside = np.all((k >= 0) & (k < self.dims), axis=-1)
+        k = np.where(inside[..., None], k, 0)
+        key = (k[..., 0] * self.dims[1] + k[..., 1]) * self.dims[2] + k[..., 2]
         if self.table is not None:  # a dense table over the map's box (rooms)
             rows = np.where(inside, self.table[key], -1).astype(np.int64)
             return rows >= 0, rows
@@ -411,7 +418,17 @@ def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
     phase = (2.0 * np.pi) * wide / pitch
     centre = centre0 + np.arctan2((np.sin(phase) * w_wide).sum(axis=0),
                                   (np.cos(phase) * w_wide).sum(axis=0)) * pitch / (2.0 * np.pi)
-    origin = centre - 0.5 * pitch
+    # (many points sharing cells: not a centroid map on this grid)
+    return grid_cells(points, pitch, centre - 0.5 * pitch, float(resultant.min()),
+                      GRID_MAX_SHARED)
+
+
+def grid_cells(points: np.ndarray, pitch: float, origin: np.ndarray,
+               resultant: float = float("nan"), max_shared: float = 1.0
+               ) -> VoxelGrid | None:
+    """Return the :class:`VoxelGrid` of ``points`` on the grid of ``pitch`` and ``origin``
+    (the first point of a cell keeps it), or None where the grid's box needs more than 62
+    bits or more than ``max_shared`` of the points fall into an already occupied cell."""
     keys = np.floor((points - origin) / pitch).astype(np.int64)
     lo = keys.min(axis=0)
     dims = keys.max(axis=0) - lo + 1
@@ -423,8 +440,8 @@ def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
     cells = linear[order]
     repeat = np.flatnonzero(cells[1:] == cells[:-1]) + 1
     shared = len(repeat) / len(points)
-    if shared > GRID_MAX_SHARED:
-        return None  # many points share cells: not a centroid map on this grid
+    if shared > max_shared:
+        return None
     keep = np.ones(len(cells), bool)
     keep[repeat] = False
     cells, rows = cells[keep], order[keep]
@@ -432,8 +449,7 @@ def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
     if int(np.prod(dims)) <= GRID_TABLE_CELLS:
         table = np.full(int(np.prod(dims)), -1, dtype=np.int32)
         table[cells] = rows
-    return VoxelGrid(pitch, origin, float(resultant.min()), shared, lo, dims, cells, rows,
-                     table)
+    return VoxelGrid(pitch, origin, resultant, shared, lo, dims, cells, rows, table)
 
 
 @dataclass(frozen=True)

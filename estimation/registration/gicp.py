@@ -32,6 +32,7 @@ from .correspondences import (
     SemanticIndex,
     VoxelGrid,
     _workers,
+    grid_cells,
     lattice_pitch,
     local_means,
     nearest_correspondences,
@@ -729,7 +730,7 @@ class Registration:
         self._source_radius_value: float | None = None
         self._cache: NeighbourCache | None = None
         self._surface_radius: float | str | None = "unset"
-        self._block_index = None  # (the lattice's keys for sawtooth_information)
+        self._lattice_cells = None  # (the lattice's cells for sawtooth_information)
         self._pitch: float | str | None = "unset"
         self._found_pitch: float | str | None = "unset"
         self._source_pos: np.ndarray | None = None
@@ -867,21 +868,15 @@ class Registration:
         as a (R, 27) mask over :data:`BLOCK_OFFSETS`; None without local surface positions."""
         if self._means_radius is None:
             return None
-        if self._block_index is None:
-            keys = np.round((self.target - self.target[0]) / pitch).astype(np.int64)
-            lo = keys.min(axis=0) - 1
-            dims = keys.max(axis=0) - lo + 2
-            code = ((keys[:, 0] - lo[0]) * dims[1] + keys[:, 1] - lo[1]) * dims[2] \
-                + keys[:, 2] - lo[2]
-            self._block_index = (keys, np.sort(code), lo, dims)
-        keys, codes, lo, dims = self._block_index
+        if self._lattice_cells is None:  # each voxel centre in the middle of its cell
+            self._lattice_cells = grid_cells(self.target, pitch, self.target[0] - 0.5 * pitch)
+        cells = self._lattice_cells
+        if cells is None:
+            return None
 
         def neighbourhood(rows: np.ndarray) -> np.ndarray:
-            k = keys[target_idx[rows]][:, None, :] + BLOCK_OFFSETS[None, :, :]
-            code = ((k[..., 0] - lo[0]) * dims[1] + k[..., 1] - lo[1]) * dims[2] \
-                + k[..., 2] - lo[2]
-            pos = np.minimum(np.searchsorted(codes, code), len(codes) - 1)
-            occupied = codes[pos] == code
+            centre = cells.cell_of(self.target[target_idx[rows]])
+            occupied = cells.rows_of_cells(centre[:, None, :] + BLOCK_OFFSETS[None, :, :])[0]
             alone = occupied.sum(axis=1) < self.config.surface_min_points
             occupied[alone] = BLOCK_OFFSETS_CENTRE
             return occupied
@@ -2043,8 +2038,8 @@ def _layer_regression(group: np.ndarray, axis: np.ndarray, centres: np.ndarray):
     return count, u, p, slope, ok, r2, mean_p
 
 
-def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitch: float
-                  ) -> np.ndarray:
+def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitch: float,
+                  regression: tuple | None = None) -> np.ndarray:
     """Return (G,) bool: which slab groups are planes tilted against the lattice.
 
     For each group (:func:`plane_groups`; ``axis`` the dominant lattice axis of each member)
@@ -2056,9 +2051,10 @@ def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitc
     points). A plane parallel to the lattice has one or two layers without a trend (R^2
     near 0); two parallel planes a few voxels apart in one slab (a step, e.g. a screen in
     front of a wall) can give a trend too but leave an empty layer between them.
+    ``regression``: :func:`_layer_regression` of these arguments, if already computed.
     """
     n_groups = int(group.max()) + 1
-    count, u, p, slope, ok, r2 = _layer_regression(group, axis, centres)[:6]
+    count, u, p, slope, ok, r2 = (regression or _layer_regression(group, axis, centres))[:6]
     fitted = np.einsum("mi,mi->m", p, slope[group])
     high = np.full(n_groups, -np.inf)
     low = np.full(n_groups, np.inf)
@@ -2116,12 +2112,14 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
     axis = np.argmax(np.abs(normals), axis=1)
     aligned = np.ones(n_groups, dtype=bool)
     if centres is not None:
-        aligned = ~tilted_groups(group, axis, centres, pitch)
+        regression = _layer_regression(group, axis, centres)
+        aligned = ~tilted_groups(group, axis, centres, pitch, regression)
     V[~aligned] = 0.0
     info = pitch ** 2 / 12.0 * V.T @ V
     if centres is not None and noise is not None and not aligned.all():
         info = info + sawtooth_information(group, ~aligned[group], sign, axis, normals,
-                                           sensitivity, centres, pitch, noise, neighbourhood)
+                                           sensitivity, centres, pitch, noise, neighbourhood,
+                                           regression)
     if tilt:
         count = np.bincount(group, minlength=n_groups).astype(float)
         rows = np.arange(len(group))
@@ -2152,7 +2150,7 @@ BLOCK_INPLANE = np.stack([BLOCK_OFFSETS[:, [(a + 1) % 3, (a + 2) % 3]] for a in 
 def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarray,
                          axis: np.ndarray, normals: np.ndarray, sensitivity: np.ndarray,
                          centres: np.ndarray, pitch: float, noise: float,
-                         neighbourhood=None) -> np.ndarray:
+                         neighbourhood=None, regression: tuple | None = None) -> np.ndarray:
     """Return the (6, 6) score covariance of the quantisation of planes tilted against a
     lattice: the part of each plane's sawtooth that its matched points do not average out.
 
@@ -2175,12 +2173,13 @@ def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarra
     (the offset's mean over that noise is the sawtooth smoothed by it; the rest varies point
     by point, as point noise does). A plane sampled densely and evenly along its slope sums
     to about zero, one sampled sparsely or along a few scan lines does not. ``members``:
-    the pairs of tilted planes.
+    the pairs of tilted planes; ``regression``: :func:`_layer_regression` of ``group``,
+    ``axis`` and ``centres``, if already computed.
     """
     rows = np.flatnonzero(members)
     if len(rows) == 0:
         return np.zeros((6, 6))
-    count, _, p, slope, _, _, _ = _layer_regression(group, axis, centres)
+    count, _, p, slope, _, _, _ = regression or _layer_regression(group, axis, centres)
     g, a = group[rows], axis[rows]
     # the pair's own layer coordinate on its plane, and the averaged block's phase offsets
     # (the block's cells lie whole pitches along the plane's two in-plane axes)
