@@ -6,8 +6,8 @@ Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs
 (T_target_source, 4x4), covariance (6x6, [rotation, translation]), converged, reason,
 iterations, inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
 model-error share, correlation ratio, re-association gain, symmetric, direction gap, overlap,
-voxel pitch of same-voxel matching, cell-crossing bias, map error, plane tilt,
-covariance_trusted) and, with --gt, d_se3 (eq. (9)),
+off-surface share, voxel pitch of same-voxel matching, cell-crossing bias, map error, plane
+tilt, covariance_trusted) and, with --gt, d_se3 (eq. (9)),
 t_err_m, r_err_rad and nees.
 
 ``calibrate`` registers the headset cloud (source) to the robot's semantic map (target): the
@@ -154,6 +154,8 @@ def _register(args, source, target, flip=None) -> dict:
                               else float(diagnostic.direction_gap)),
             "overlap": (None if np.isnan(diagnostic.overlap[0])
                         else [float(v) for v in diagnostic.overlap]),
+            "off_surface": (None if np.isnan(getattr(diagnostic, "off_surface", np.nan))
+                            else float(diagnostic.off_surface)),
             "voxel_pitch_m": getattr(diagnostic, "voxel_pitch", None),
             "crossing_bias_m": getattr(diagnostic, "crossing_bias", None),
             "map_error_m": getattr(diagnostic, "map_error", None),
@@ -244,6 +246,9 @@ def _summary(out: dict) -> str:
         elif gap is not None and gap > RegistrationConfig.trust_gap:
             text += (f"; covariance not trusted (the two directions found different "
                      f"solutions: gap {gap:.0f}, another basin?)")
+        elif (diagnostic.get("off_surface") or 0.0) > RegistrationConfig.trust_off_surface:
+            text += (f"; covariance not trusted ({diagnostic['off_surface']:.0%} of the source's "
+                     f"points near the target lie just off its surfaces: another basin?)")
         elif inside and diagnostic.get("map_error_m") is None:
             text += ("; covariance not trusted (the source lies inside a map whose voxel "
                      "grid was not found: the map's representation error is not in it)")

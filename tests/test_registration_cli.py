@@ -43,6 +43,8 @@ def test_register_writes_result_with_errors(tmp_path):
         assert diagnostic["correlation_ratio"] > 0 and diagnostic["model_error_share"] == 0
         # off a lattice: the midpoint of both directions, with their disagreement
         assert diagnostic["symmetric"] is True and diagnostic["direction_gap"] > 0
+        # every point on a surface both clouds sampled: none just off the target's
+        assert 0.0 <= diagnostic["off_surface"] < 0.05
 
 
 def test_register_bad_input_exits_2(tmp_path, capsys):
@@ -92,6 +94,9 @@ def test_the_summary_says_why_the_covariance_is_not_trusted():
     assert "ratio 5.20" in _summary(out)
     out["covariance_diagnostic"]["direction_gap"] = 337.0
     assert "the two directions found different solutions: gap 337" in _summary(out)
+    out["covariance_diagnostic"].update(direction_gap=22.8, off_surface=0.31)
+    assert "31% of the source's points near the target lie just off its surfaces" in \
+        _summary(out)
     out["converged"] = False
     assert "the estimate did not converge" in _summary(out)
     out["converged"] = True
