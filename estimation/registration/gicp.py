@@ -156,16 +156,17 @@ class RegistrationConfig:
     trust_ratio : the covariance is flagged untrusted when the cluster sandwich with blocks
         four times wider exceeds the reported covariance by more than this (mean variance
         ratio; :class:`CovarianceDiagnostic`)
-    trust_off_surface : the covariance is flagged untrusted when more than this share of the
-        source's points near the target lie just off its surfaces
-        (``CovarianceDiagnostic.off_surface``): another basin. 0.15 lies between the right
-        basins measured (at most 0.084, KITTI at 0.1 m voxels) and the converged wrong basins
-        of the real rooms that the other rules missed (0.21-0.26). ``math.inf``: off
     trust_gap : the midpoint's covariance is flagged untrusted when the two directions'
         estimates differ by more than this (``CovarianceDiagnostic.direction_gap``, about
         chi-square with 6 dof under the noise alone): 38.3 is its 1 - 1e-6 quantile. Legit
         direction-dependent matching measured at most 23.5 (30 real scan splits) and 17
         (KITTI); runs that converged in another basin of a room 218-346. ``math.inf``: off
+    trust_off_surface : the covariance is flagged untrusted when more than this share of the
+        source's points near the target lie beside its surfaces
+        (``CovarianceDiagnostic.off_surface``): another basin. 0.11 lies between the right
+        basins measured (at most 0.086 where no other rule flags them) and the converged
+        wrong basins of the real rooms that the other rules missed (0.140-0.255), about
+        1.3x from each. ``math.inf``: off
     reassociation_step : the sandwich's bread for the point noise is the derivative of the
         score sum with the correspondences re-matched at poses moved by this many standard
         deviations (of the fixed-association sandwich) along each axis
@@ -301,7 +302,7 @@ class RegistrationConfig:
     quantisation: float | str | None = "auto"
     trust_ratio: float = 4.0
     trust_gap: float = 38.3
-    trust_off_surface: float = 0.15
+    trust_off_surface: float = 0.11
     reassociation_step: float | None = 3.0
     symmetric: bool = True
     tilted_planes: bool = True
@@ -434,14 +435,16 @@ class CovarianceDiagnostic:
         for a converged sandwich; when the source lies inside the target
         (:func:`source_inside_target`) the forward estimate is kept and ``trusted`` is False.
         NaN otherwise
-    off_surface : of the source's points within two of the overlap's radii of a target
-        point at the solution, the share not within one (:meth:`Registration.coverage`):
-        points just off the target's surfaces, which the right basin does not leave (a
-        point there lies on a surface both clouds sampled, or beyond what the target
-        covers). Measured 0-0.06 in the right basins of the real rooms, scan splits and parts
-        of rooms, 0.06-0.08 on KITTI, 0.21-0.46 in converged wrong basins of the rooms;
-        ``trusted`` is False above ``RegistrationConfig.trust_off_surface``. NaN where
-        ``overlap`` is
+    off_surface : of the source's points within two of the overlap's radii of a target point
+        at the solution, the share not within one (:meth:`Registration.coverage`): points
+        beside the target's surfaces, which the right basin does not leave (a point there
+        lies on a surface both clouds sampled, or beyond what the target covers). Measured
+        0-0.086 in the right basins of the real rooms (halves, also at 3 cm point noise, and
+        parts), the real scan splits and KITTI at 0.1-0.5 m voxels (0.095 at 0.05 m and 0.226
+        on its raw scans, whose rings are far apart: both flagged by their direction gaps);
+        0.080-0.46 in converged wrong basins of the rooms, 0.140-0.255 in those the direction
+        gap missed. ``trusted`` is False above ``RegistrationConfig.trust_off_surface``. NaN
+        where ``overlap`` is
     voxel_pitch : the pitch (m) of the voxel-centroid map's grid whose cells matched the
         pairs on surfaces parallel to it (``RegistrationConfig.voxel_matching``), or None
     crossing_bias : the root-mean-square plane offset (m) of the cell-crossing term
@@ -1740,16 +1743,18 @@ class Registration:
         (``block``, the target's; the source's alike), i.e. on a surface the other cloud
         has sampled too.
         """
-        return self.coverage(T, block, samples)[:2]
+        return self.coverage(T, block, samples, off_surface=False)[:2]
 
-    def coverage(self, T: np.ndarray, block: float, samples: int = 0
-                 ) -> tuple[float, float, float]:
-        """Return :meth:`overlap` and the source's off-surface share at ``T`` from the same
-        queries: of the source's sampled points within two radii (the overlap's) of a target
-        point, the share not within one. In the right basin a source point either lies on
-        a surface the target sampled too or beyond what the target covers; in another basin
-        part of it lies just off the target's surfaces (docs/registration.md, "Off the
-        surfaces"). NaN where no source point is within two radii.
+    def coverage(self, T: np.ndarray, block: float, samples: int = 0,
+                 off_surface: bool = True) -> tuple[float, float, float]:
+        """Return :meth:`overlap` and the source's off-surface share at ``T`` (NaN unless
+        ``off_surface``), from the same queries.
+
+        Off-surface share: of the sampled source points within two of the overlap's radii of
+        a target point, the share not within one. In the right basin a source point lies on a
+        surface the target sampled too or beyond what the target covers; in another basin
+        part of it lies beside the target's surfaces (docs/registration.md, "Off the
+        surfaces"). NaN where no source point is that near.
         """
         if self._source_block is None:
             self._source_block = self.config.cluster_factor * self._source_radius
@@ -1757,15 +1762,13 @@ class Registration:
         samples = samples or OVERLAP_SAMPLES
         src = self.source[:: max(1, len(self.source) // samples)]
         tgt = self.target[:: max(1, len(self.target) // samples)]
-        T_inv = np.linalg.inv(T)
-        d_f, _ = self.target_tree.query(transform_points(T, src),
-                                        distance_upper_bound=2.0 * radius)
-        d_r, _ = self.source_tree.query(transform_points(T_inv, tgt),
+        d_f, _ = self.target_tree.query(
+            transform_points(T, src), distance_upper_bound=(2.0 if off_surface else 1.0) * radius)
+        d_r, _ = self.source_tree.query(transform_points(np.linalg.inv(T), tgt),
                                         distance_upper_bound=radius)
-        near = int(np.sum(d_f < 2.0 * radius))
-        on = int(np.sum(d_f < radius))
-        off = (near - on) / near if near else float("nan")
-        return float(on / len(src)), float(np.mean(d_r < radius)), float(off)
+        on, near = int(np.sum(d_f < radius)), int(np.sum(d_f < 2.0 * radius))
+        share = (near - on) / near if off_surface and near else float("nan")
+        return on / len(src), float(np.mean(d_r < radius)), float(share)
 
     def reverse_terms(self, T: np.ndarray, d_max: float, block: float,
                       rev: Registration | None = None, cache: Future | None = None,
