@@ -7,8 +7,8 @@ source's points within two of the overlap's radii of a target point, of those no
 (`Registration.coverage`). Measured (issue 14, fourteenth round; docs/registration.md, "Off
 the surfaces"): right basins 0-0.086 where no other rule flags them (real rooms' halves, also
 at 3 cm point noise, and parts; the real scan splits 0.033-0.041; KITTI at 0.1-0.5 m voxels
-0.064-0.084); converged wrong basins of the rooms 0.080-0.46, those the direction gap missed
-0.140-0.255, all above the threshold, 0.11.
+0.064-0.084); converged wrong basins of the rooms 0.073-0.46, those the direction gap missed
+0.140-0.29 but two (0.073 and 0.094, still trusted) above the threshold, 0.11.
 """
 from __future__ import annotations
 

@@ -165,8 +165,8 @@ class RegistrationConfig:
         source's points near the target lie beside its surfaces
         (``CovarianceDiagnostic.off_surface``): another basin. 0.11 lies between the right
         basins measured (at most 0.086 where no other rule flags them) and the converged
-        wrong basins of the real rooms that the other rules missed (0.140-0.255), about
-        1.3x from each. ``math.inf``: off
+        wrong basins of the real rooms that the other rules missed (0.140-0.29, about 1.3x
+        above; two more at 0.073 and 0.094 stay trusted). ``math.inf``: off
     reassociation_step : the sandwich's bread for the point noise is the derivative of the
         score sum with the correspondences re-matched at poses moved by this many standard
         deviations (of the fixed-association sandwich) along each axis
@@ -442,9 +442,9 @@ class CovarianceDiagnostic:
         0-0.086 in the right basins of the real rooms (halves, also at 3 cm point noise, and
         parts), the real scan splits and KITTI at 0.1-0.5 m voxels (0.095 at 0.05 m and 0.226
         on its raw scans, whose rings are far apart: both flagged by their direction gaps);
-        0.080-0.46 in converged wrong basins of the rooms, 0.140-0.255 in those the direction
-        gap missed. ``trusted`` is False above ``RegistrationConfig.trust_off_surface``. NaN
-        where ``overlap`` is
+        0.073-0.46 in converged wrong basins of the rooms, 0.140-0.29 in those the direction
+        gap missed but two (0.073, 0.094: still trusted). ``trusted`` is False above
+        ``RegistrationConfig.trust_off_surface``. NaN where ``overlap`` is
     voxel_pitch : the pitch (m) of the voxel-centroid map's grid whose cells matched the
         pairs on surfaces parallel to it (``RegistrationConfig.voxel_matching``), or None
     crossing_bias : the root-mean-square plane offset (m) of the cell-crossing term
