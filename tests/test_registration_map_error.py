@@ -22,7 +22,7 @@ import gtsam
 import numpy as np
 import pytest
 from test_registration import make_pair
-from test_registration_trust import small_offset_start
+from test_registration_trust import benchmark_start
 
 from benchmarks.registration import D_FINAL, register_ours
 from estimation.covariance import chi2_bounds, nees
@@ -47,7 +47,7 @@ def _displaced(target: np.ndarray, block: float, sigma: np.ndarray, rng) -> np.n
 @pytest.mark.slow
 def test_the_term_predicts_how_displaced_map_blocks_move_the_estimate(room):
     points, labels, target = room
-    source, _, init, d0 = small_offset_start(points, labels, 0)
+    source, _, init, d0 = benchmark_start(points, labels, 0)
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
     cfg = RegistrationConfig(max_correspondence_distance=D_FINAL, symmetric=False)
     reg = Registration(source.points, target.points, cfg)
@@ -80,7 +80,7 @@ def test_a_dense_source_is_consistent_only_with_the_term(room):
     points, labels, target = room
     with_term, without, same = [], [], []
     for seed in range(8):
-        source, T_gt, init, d0 = small_offset_start(points, labels, seed, 60000)
+        source, T_gt, init, d0 = benchmark_start(points, labels, seed, 60000)
         r, _ = register_ours(source, target, init, (d0, D_FINAL))
         off, _ = register_ours(source, target, init, (d0, D_FINAL), map_error=None)
         assert r.converged and r.diagnostic.map_error == pytest.approx(0.035 * 0.03, rel=1e-3)
@@ -128,7 +128,7 @@ def office(centroid_room):
 @pytest.mark.parametrize("seed, right", [(0, True), (1, True), (13, False), (28, False)])
 def test_inside_a_map_only_a_fully_covered_run_is_trusted(office, seed, right, monkeypatch):
     points, labels, target = office
-    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
+    source, T_gt, init, d0 = benchmark_start(points, labels, seed)
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
     d = result.diagnostic
     assert result.converged and not d.symmetric and d.map_error is not None  # inside
@@ -150,7 +150,7 @@ def test_the_dense_sources_bread_over_strided_rows_keeps_the_covariance(room, mo
     # evenly strided rows (150k points: 0.3-0.5 -> 0.1-0.2 s); the point-noise covariance
     # stays within a few tens of per cent, on the conservative side (measured 0.99-1.32x)
     points, labels, target = room
-    source, _, init, d0 = small_offset_start(points, labels, 1, 60000)
+    source, _, init, d0 = benchmark_start(points, labels, 1, 60000)
     strided, _ = register_ours(source, target, init, (d0, D_FINAL))
     monkeypatch.setattr(gicp, "REASSOCIATION_ROWS", 10 ** 9)
     full, _ = register_ours(source, target, init, (d0, D_FINAL))
@@ -170,7 +170,7 @@ def test_the_wide_kernel_through_the_final_stage_ends_a_dense_slide(office, monk
     # 1.0 mm. The final stage's extrapolation (EXTRAPOLATE) ends this slide too, without the
     # wide kernel, in fewer iterations; with neither it runs out of them.
     points, labels, target = office
-    source, T_gt, init, d0 = small_offset_start(points, labels, 17, 60000)
+    source, T_gt, init, d0 = benchmark_start(points, labels, 17, 60000)
     monkeypatch.setattr(gicp, "EXTRAPOLATE", False)
     done, _ = register_ours(source, target, init, (d0, D_FINAL))
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005

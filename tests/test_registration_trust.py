@@ -31,11 +31,12 @@ def office(centroid_room):
     return centroid_room("icl", 10)
 
 
-def small_offset_start(points, labels, seed, n=SOURCE_POINTS):
-    """(source, T_gt, initial guess, d0) of the benchmark's trial ``seed``, ``n`` points."""
+def benchmark_start(points, labels, seed, n=SOURCE_POINTS, offset="small"):
+    """(source, T_gt, initial guess, d0) of the benchmark's trial ``seed``, ``n`` points
+    (``offset``: the benchmark's "small" or "wide" start)."""
     rng = np.random.default_rng(seed)
     source, T_gt = half_room_source(points, labels, rng, n)
-    metres, degrees, d0 = OFFSETS["small"]
+    metres, degrees, d0 = OFFSETS[offset]
     init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
     return source, T_gt, init, d0
 
@@ -43,15 +44,23 @@ def small_offset_start(points, labels, seed, n=SOURCE_POINTS):
 @pytest.mark.parametrize("seed", [19, 22])
 def test_two_directions_in_different_basins_are_not_trusted(office, seed):
     points, labels, target = office
-    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
+    source, T_gt, init, d0 = benchmark_start(points, labels, seed)
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
-    off, _ = register_ours(source, target, init, (d0, D_FINAL), trust_gap=math.inf)
+    # (since the fourteenth round the off-surface share flags both runs too, 0.113 and 0.119:
+    # off here)
+    off, _ = register_ours(source, target, init, (d0, D_FINAL), trust_gap=math.inf,
+                           trust_off_surface=math.inf)
     assert result.converged and pose_error(result.T, T_gt).t_err_m > 0.1  # another basin
     assert result.diagnostic.symmetric and result.diagnostic.direction_gap > 100.0
-    assert not result.diagnostic.trusted
     # the gap is what flags it: without the rule the same run was trusted
-    np.testing.assert_array_equal(off.T, result.T)
-    assert off.diagnostic.trusted
+    assert_only_the_rule_flags(result, off)
+
+
+def assert_only_the_rule_flags(result, without_rule):
+    """The run is untrusted, and the same run (same pose) without the rule was trusted."""
+    assert not result.diagnostic.trusted
+    np.testing.assert_array_equal(without_rule.T, result.T)
+    assert without_rule.diagnostic.trusted
 
 
 @pytest.mark.parametrize("seed", [5, 21])
@@ -59,7 +68,7 @@ def test_a_run_that_did_not_converge_is_not_trusted(office, seed):
     # cut after 3 final iterations these starts end unconverged (seed 5 37 mm off); with the
     # default 150 they converge (in 43 / 73 iterations, measured)
     points, labels, target = office
-    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
+    source, T_gt, init, d0 = benchmark_start(points, labels, seed)
     cut, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=3)
     assert not cut.converged
     assert cut.diagnostic is not None and not cut.diagnostic.trusted
@@ -76,7 +85,7 @@ def test_the_wide_kernel_while_annealing_ends_the_slow_slides(office, seed, monk
     # benchmark's room. With cauchy_alpha while annealing they converge within 60. (The
     # final stage's extrapolation also ends these slides: off for the negative control.)
     points, labels, target = office
-    source, T_gt, init, d0 = small_offset_start(points, labels, seed)
+    source, T_gt, init, d0 = benchmark_start(points, labels, seed)
     done, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=60)
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
     monkeypatch.setattr(gicp, "EXTRAPOLATE", False)
