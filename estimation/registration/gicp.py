@@ -444,7 +444,8 @@ class CovarianceDiagnostic:
         on its raw scans, whose rings are far apart: both flagged by their direction gaps);
         0.073-0.46 in converged wrong basins of the rooms, 0.140-0.29 in those the direction
         gap missed but two (0.073, 0.094: still trusted). ``trusted`` is False above
-        ``RegistrationConfig.trust_off_surface``. NaN where ``overlap`` is
+        ``RegistrationConfig.trust_off_surface``. Measured on lattice maps too (where
+        ``overlap`` is not); NaN where the run did not converge
     voxel_pitch : the pitch (m) of the voxel-centroid map's grid whose cells matched the
         pairs on surfaces parallel to it (``RegistrationConfig.voxel_matching``), or None
     crossing_bias : the root-mean-square plane offset (m) of the cell-crossing term
@@ -1494,6 +1495,8 @@ class Registration:
         if sandwich and pitch is None and converged:
             *overlap, off_surface = self.coverage(T, block)
             overlap = tuple(overlap)
+        elif sandwich and converged:  # on a lattice: no overlap rule, but the share
+            off_surface = self.coverage(T, block)[2]
         # a part of a map registered to that map (no lattice term): trusted only with the
         # map's representation error in the covariance (map_error) and every point on the
         # map's surfaces (INSIDE_TRUSTED_COVERAGE; docs/registration.md, "Real rooms")
