@@ -1493,8 +1493,8 @@ class Registration:
             reverse = start_reverse()
         overlap, off_surface = (float("nan"), float("nan")), float("nan")
         if sandwich and pitch is None and converged:
-            *overlap, off_surface = self.coverage(T, block)
-            overlap = tuple(overlap)
+            covered, target_covered, off_surface = self.coverage(T, block)
+            overlap = (covered, target_covered)
         elif sandwich and converged:  # on a lattice: no overlap rule, but the share
             off_surface = self.coverage(T, block)[2]
         # a part of a map registered to that map (no lattice term): trusted only with the
@@ -1599,7 +1599,7 @@ class Registration:
                 or diagnostic.off_surface > cfg.trust_off_surface):
             # an estimate that did not converge, whose two directions found different
             # solutions (another basin, or a bias the midpoint does not cover), or with part
-            # of the source just off the target's surfaces (another basin), has no
+            # of the source beside the target's surfaces (another basin), has no
             # covariance to trust (NaN gap: one direction; NaN share: not measured)
             diagnostic = replace(diagnostic, trusted=False)
         dist = np.linalg.norm(tgt - transform_points(T, src), axis=1)
