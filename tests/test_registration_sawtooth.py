@@ -65,7 +65,7 @@ def test_sawtooth_term_is_the_phase_covariance_of_scan_lines(rng, noise):
                                 sensitivity, centres, PITCH, noise)
     v = np.abs(normals[:, 2])[:, None] * sensitivity
     # the term reads the plane's slope off its staircase (the true one: 0.05)
-    _, _, p, slope, ok, _, _ = _layer_regression(group, axis, centres)
+    _, _, p, slope, ok, _ = _layer_regression(group, axis, centres)
     assert ok[0] and slope[0, 0] == pytest.approx(0.05, abs=0.002) and abs(slope[0, 1]) < 0.01
     expected = monte_carlo(p @ slope[0], v, noise)
     assert np.trace(info) == pytest.approx(np.trace(expected), rel=0.03)

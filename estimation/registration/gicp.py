@@ -2049,8 +2049,7 @@ def _layer_regression(group: np.ndarray, axis: np.ndarray, centres: np.ndarray):
     """Per slab group, the least-squares plane of the layer coordinate ``u`` (along each
     member's dominant lattice ``axis``) of the lattice points ``centres`` over their two
     in-plane coordinates ``p``. Return (count (G,), u and p centred on their group's mean
-    (M,) and (M, 2), slope (G, 2), ok (G,) bool: a well-posed fit, r2 (G,), the groups'
-    mean in-plane coordinates (G, 2))."""
+    (M,) and (M, 2), slope (G, 2), ok (G,) bool: a well-posed fit, r2 (G,))."""
     n_groups = int(group.max()) + 1
     rows = np.arange(len(group))
     u = centres[rows, axis]
@@ -2073,9 +2072,7 @@ def _layer_regression(group: np.ndarray, axis: np.ndarray, centres: np.ndarray):
     slope = np.c_[S_pp[:, 1, 1] * S_pu[:, 0] - S_pp[:, 0, 1] * S_pu[:, 1],
                   S_pp[:, 0, 0] * S_pu[:, 1] - S_pp[:, 0, 1] * S_pu[:, 0]] / det[:, None]
     r2 = np.einsum("gi,gi->g", slope, S_pu) / np.where(S_uu > 0.0, S_uu, 1.0)
-    mean_p = np.c_[np.bincount(group, centres[rows, (axis + 1) % 3], n_groups),
-                   np.bincount(group, centres[rows, (axis + 2) % 3], n_groups)] / count[:, None]
-    return count, u, p, slope, ok, r2, mean_p
+    return count, u, p, slope, ok, r2
 
 
 def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitch: float,
@@ -2094,7 +2091,7 @@ def tilted_groups(group: np.ndarray, axis: np.ndarray, centres: np.ndarray, pitc
     ``regression``: :func:`_layer_regression` of these arguments, if already computed.
     """
     n_groups = int(group.max()) + 1
-    count, u, p, slope, ok, r2 = (regression or _layer_regression(group, axis, centres))[:6]
+    count, u, p, slope, ok, r2 = regression or _layer_regression(group, axis, centres)
     fitted = np.einsum("mi,mi->m", p, slope[group])
     high = np.full(n_groups, -np.inf)
     low = np.full(n_groups, np.inf)
@@ -2219,7 +2216,7 @@ def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarra
     rows = np.flatnonzero(members)
     if len(rows) == 0:
         return np.zeros((6, 6))
-    count, _, p, slope, _, _, _ = regression or _layer_regression(group, axis, centres)
+    _, _, p, slope, _, _ = regression or _layer_regression(group, axis, centres)
     g, a = group[rows], axis[rows]
     # the pair's own layer coordinate on its plane, and the averaged block's phase offsets
     # (the block's cells lie whole pitches along the plane's two in-plane axes)
