@@ -45,7 +45,9 @@ wide: 1.0 m / 40 deg about the source centroid) and two-stage schedule (d0 0.5 /
 0.2 m) for every method. Methods: "gicp-se3" and "semantic-icp" (ours, default
 RegistrationConfig but for the schedule), "gicp-se3-nogate" (ours with ``boundary_gate=None``,
 the estimator before the boundary gate), "gicp-se3-nearest" (ours with ``voxel_matching=None``:
-the nearest centroid throughout, the estimator before same-voxel matching), "open3d-gicp"
+the nearest centroid throughout, the estimator before same-voxel matching),
+"gicp-se3-midpoint" (ours with ``partial_voxel_matching=False``: a partial overlap matched by
+nearest centroids, the midpoint of both directions, as before the fifteenth round), "open3d-gicp"
 (CauchyLoss(1.0), the reference of the ratios). Semantic-ICP uses one-hot labels (the wrong
 ones too). NEES = e^T P^-1 e of the final error against the reported covariance; every trial is
 an independent source (another half, subsample, noise, labels, ground truth), the map is the
@@ -107,7 +109,8 @@ SCAN_RANGE = 8.0  # m: the laser scan's points kept (beyond, its spacing is seve
 N_GEOMETRIC = 4  # the rooms' geometric classes (three axes and "other")
 N_CLASSES = N_GEOMETRIC  # the classes of the run (--classes)
 PITCH = 0.03
-METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "open3d-gicp")
+METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "gicp-se3-midpoint",
+           "open3d-gicp")
 PART_OVERLAP = 1.0  # m: width of the slab two parts share (setting "part")
 SOURCE_POINTS = 15000  # points drawn for a trial's source (--source-points; 0: all)
 
@@ -298,7 +301,9 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
                 result = None
             else:
                 options = {**(ours or {}), **{"gicp-se3-nogate": {"boundary_gate": None},
-                                              "gicp-se3-nearest": {"voxel_matching": None}
+                                              "gicp-se3-nearest": {"voxel_matching": None},
+                                              "gicp-se3-midpoint": {
+                                                  "partial_voxel_matching": False}
                                               }.get(method, {})}
                 result, seconds = register_ours(source, target, init, (d0, D_FINAL),
                                                 semantic=method == "semantic-icp", **options)

@@ -651,14 +651,20 @@ def _beside(fn, *args):
         return fn(*args)
 
 # a partial overlap with a voxel-centroid map is matched by cell from convergence on
-# (partial_voxel_matching) where at least this share of the nearest-neighbour pairs lie on
-# surfaces within voxel_matching of a grid axis (the pairs the cells move). The cells remove
-# the aliasing of those pairs, and the estimate loses the midpoint of the two directions,
-# which takes out the matching's asymmetry. Measured on the real rooms' parts (15k points,
-# benchmark --setting part): ICL-NUIM's office (a CAD room in its grid's axes) 0.57-0.66,
-# paired error 0.35x and mean NEES 503 -> 5.8 with the cells; the TUM room 0.09-0.16, paired
-# error 1.12x (mean 1.38x) with them (docs/registration.md, "Partial overlaps matched by cell")
+# (partial_voxel_matching) where the map's grid likely cut its surface layers into sheets
+# (Registration._sheets_likely): at least this share of the nearest-neighbour pairs on
+# surfaces within PARTIAL_CELL_ANGLE of a grid axis, their layers at least
+# PARTIAL_CELL_THICKNESS pitches thick. The cells remove that aliasing, and the estimate loses
+# the midpoint of the two directions, which takes out the matching's asymmetry. Measured at
+# the nearest-neighbour fixed point (docs/registration.md, "Partial overlaps matched by
+# cell"): the parts of ICL-NUIM's office (a CAD room in its grid's axes) share 0.54-0.71 in
+# the right basins, thickness 0.15-0.22, paired error 0.35x and mean NEES 503 -> 5.8 with the
+# cells; the TUM room's 0.09-0.18 (at 10 deg 0.30-0.35: with the cells there, paired error
+# 1.12x); the scan splits' 0.32-0.33 but layers 0.035-0.039 pitches thin (with the cells
+# there, 6 of 30 splits: error 0.15-0.86 -> 0.36-1.30 mm)
 PARTIAL_CELL_SHARE = 0.3
+PARTIAL_CELL_ANGLE = 5.0  # degrees
+PARTIAL_CELL_THICKNESS = 0.1  # pitches
 # the final stage and the reverse direction are prepared on the second thread
 # (Registration._prepare_forward, _prepare_reverse) from the first iteration of the annealing
 # stages, and of the final one, whose step (||Logmap||, rad and m) is below this: the pose then
@@ -1057,8 +1063,7 @@ class Registration:
         elif d_max is not None and partial is not None:
             grid = partial.result()
             corr = None if grid is None else self.correspondences(T, d_max)
-            if corr is not None and self._grid_aligned(
-                    corr.target_idx, self.config.voxel_matching).mean() >= PARTIAL_CELL_SHARE:
+            if corr is not None and self._sheets_likely(corr, grid.pitch):
                 self._keep_nearest_fixed_point(T, d_max, corr)
                 self._grid = grid
         return self._grid is not None
@@ -1080,9 +1085,22 @@ class Registration:
         """The map's grid for same-voxel matching in a partial overlap, or None: also where
         the source looks like a voxel map itself (:func:`looks_voxelised`; LiDAR pipelines'
         pairs), a cell's two centroids being the means of different points there."""
-        if looks_voxelised(self.source, self.source_tree):
+        if looks_voxelised(self.source, self.source_tree) or lattice_pitch(
+                self.target, self.target_tree) is not None:  # (a lattice: no cells)
             return None
         return voxel_grid(self.target, self.target_tree)
+
+    def _sheets_likely(self, corr: Correspondences, pitch: float) -> bool:
+        """Whether the map's grid is likely to have cut its surface layers into sheets of
+        centroids under the pairs ``corr``: at least PARTIAL_CELL_SHARE of them on surfaces
+        within PARTIAL_CELL_ANGLE of a grid axis, and those surfaces' layers (median
+        thickness, :meth:`map_thickness`) at least PARTIAL_CELL_THICKNESS pitches thick."""
+        rows, inverse = np.unique(corr.target_idx, return_inverse=True)
+        aligned = self._axis_aligned(rows, PARTIAL_CELL_ANGLE)
+        if aligned[inverse].mean() < PARTIAL_CELL_SHARE:
+            return False
+        thickness = self.map_thickness(rows[aligned])
+        return float(np.median(thickness)) >= PARTIAL_CELL_THICKNESS * pitch
 
     def _keep_nearest_fixed_point(self, T: np.ndarray, d_max: float,
                                   corr: Correspondences) -> None:
@@ -1115,13 +1133,18 @@ class Registration:
         flags = self._aligned[rows]
         todo = np.unique(rows[flags < 0])
         if len(todo):
-            # the plane-regularised covariance is I - (1 - eps) n n^T: n_a^2 on its diagonal
-            axes = np.arange(3)
-            diagonal = _rows_of(self.target_cov, todo)[todo[:, None], axes, axes]
-            self._aligned[todo] = diagonal.min(axis=1) <= 1.0 - (
-                1.0 - self.config.epsilon) * np.cos(np.deg2rad(angle)) ** 2
+            self._aligned[todo] = self._axis_aligned(todo, angle)
             flags = self._aligned[rows]
         return flags > 0
+
+    def _axis_aligned(self, rows: np.ndarray, angle: float) -> np.ndarray:
+        """Return (M,) bool: the target normals at (unique) ``rows`` within ``angle`` degrees
+        of a grid axis, from their covariances (uncached: :meth:`_grid_aligned` caches)."""
+        # the plane-regularised covariance is I - (1 - eps) n n^T: n_a^2 on its diagonal
+        axes = np.arange(3)
+        diagonal = _rows_of(self.target_cov, rows)[rows[:, None], axes, axes]
+        return diagonal.min(axis=1) <= 1.0 - (
+            1.0 - self.config.epsilon) * np.cos(np.deg2rad(angle)) ** 2
 
     def same_voxel(self, T: np.ndarray, corr: Correspondences) -> Correspondences:
         """Return ``corr`` with the pairs on surfaces parallel to a voxel-centroid map's grid
