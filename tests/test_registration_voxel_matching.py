@@ -117,11 +117,20 @@ def test_nothing_changes_where_the_source_does_not_lie_inside_or_on_a_lattice(rn
     init = np.eye(4)
     init[:3, 3] = [0.01, -0.02, 0.01]
     for target in (lattice, partial_map):
-        cfg = dict(max_correspondence_distance=0.1, symmetric=False)
+        # (a partial overlap is matched by cell from convergence on where the map's layers
+        # are cut into sheets: partial_voxel_matching, tests/test_registration_partial_cells.py)
+        cfg = dict(max_correspondence_distance=0.1, symmetric=False,
+                   partial_voxel_matching=False)
         a = Registration(part, target, RegistrationConfig(**cfg)).run(init)
         b = Registration(part, target, RegistrationConfig(voxel_matching=None, **cfg)).run(init)
         np.testing.assert_array_equal(a.T, b.T)
         np.testing.assert_array_equal(a.covariance, b.covariance)
+    # these thick axis-aligned walls are what the partial cells are for; never on a lattice
+    cfg = dict(max_correspondence_distance=0.1, symmetric=False)
+    assert Registration(part, partial_map, RegistrationConfig(**cfg)).run(
+        init).diagnostic.voxel_pitch == pytest.approx(0.03, rel=1e-3)
+    assert Registration(part, lattice, RegistrationConfig(**cfg)).run(
+        init).diagnostic.voxel_pitch is None
 
 
 def test_a_start_without_annealing_still_matches_by_cell(rng):
