@@ -20,7 +20,11 @@ from benchmarks.registration_real import DEFAULT_OCTOMAP, scan_setting
 from estimation.covariance import nees
 from estimation.errors import EstimationError
 from estimation.registration import RegistrationConfig, gicp, pose_error
-from estimation.registration.correspondences import _resultants, looks_voxelised
+from estimation.registration.correspondences import (
+    _resultants,
+    looks_voxelised,
+    sheets_possible,
+)
 from estimation.registration.metrics import offset_about_centroid
 
 
@@ -116,9 +120,23 @@ def test_two_voxel_maps_are_matched_as_before(seed):
 
 
 def test_thin_layers_are_what_keeps_the_scan_split_off_the_cells(monkeypatch):
-    monkeypatch.setattr(gicp, "PARTIAL_CELL_THICKNESS", 0.0)  # the rule's negative control
+    # the rule's negative control (and its loose form on the map's sample, which skips the
+    # grid's search: 0.03 pitch thin here, the office's parts 0.15-0.20)
+    monkeypatch.setattr(gicp, "PARTIAL_CELL_THICKNESS", 0.0)
+    monkeypatch.setattr(gicp, "PARTIAL_MAP_THICKNESS", 0.0)
     a = scan_split(108)
     assert a.diagnostic.voxel_pitch is not None and not a.diagnostic.symmetric
+
+
+def test_the_maps_own_sample_tells_thin_layers_from_thick_ones(office):
+    points, labels, _ = office
+    _, _, part = room_part_source(points, labels, np.random.default_rng(0))
+    office_part = voxel_map(points[part], labels[part], "centroids")[0]
+    scan_target = scan_setting(DEFAULT_OCTOMAP, 108).target.points
+    args = (gicp.PARTIAL_CELL_ANGLE, gicp.PARTIAL_MAP_SHARE, gicp.PARTIAL_MAP_THICKNESS)
+    assert sheets_possible(office_part, None, *args)
+    assert not sheets_possible(scan_target, None, *args)
+    assert sheets_possible(scan_target, None, args[0], args[1], 0.0)
 
 
 def test_a_voxel_map_looks_voxelised_and_a_raw_scan_does_not(office):
@@ -159,5 +177,6 @@ def test_a_map_whose_surfaces_cross_its_grid_keeps_the_midpoint(centroid_room, m
     assert np.array_equal(cells.T, nearest.T)
     assert np.array_equal(cells.covariance, nearest.covariance)
     monkeypatch.setattr(gicp, "PARTIAL_CELL_SHARE", 0.0)  # the rule's negative control
+    monkeypatch.setattr(gicp, "PARTIAL_MAP_SHARE", 0.0)
     cells, _, _ = part_trial(points, labels, 1)
     assert cells.diagnostic.voxel_pitch is not None and not cells.diagnostic.symmetric

@@ -292,11 +292,13 @@ def _resultants(x: np.ndarray, frequencies: np.ndarray, weights: np.ndarray | No
     return out
 
 
-def _in_plane(points: np.ndarray, tree: cKDTree, rows: np.ndarray) -> np.ndarray:
+def _in_plane(points: np.ndarray, tree: cKDTree, rows: np.ndarray,
+              thickness: np.ndarray | None = None) -> np.ndarray:
     """Return (M, 3) ``1 - n_a^2`` of the local surface normals at ``rows``: how much axis a
     lies in the surface (a surface across axis a puts its centroids wherever the surface is
-    along a, not at the cells' centres, so it says nothing about the grid's phase there)."""
-    cov, _ = neighbourhoods(points, 12, 1e-3, tree, rows)
+    along a, not at the cells' centres, so it says nothing about the grid's phase there).
+    ``thickness`` (M,): the neighbourhoods' standard deviations along their normals."""
+    cov, _ = neighbourhoods(points, 12, 1e-3, tree, rows, thickness=thickness)
     return np.clip(np.einsum("mii->mi", cov) - 1e-3, 0.0, 1.0) / (1.0 - 1e-3)
 
 
@@ -400,9 +402,26 @@ def looks_voxelised(points: np.ndarray, tree: cKDTree | None = None) -> bool:
     return search is not None and search[2] >= VOXELISED_RESULTANT
 
 
-def _grid_search(points: np.ndarray, tree: cKDTree | None):
+def sheets_possible(points: np.ndarray, tree: cKDTree | None, angle: float, share: float,
+                    thickness: float) -> bool:
+    """Whether a voxel-centroid map may hold surface layers its grid cut into sheets: on the
+    sample of :func:`voxel_grid`'s first stages, at least ``share`` of the points on surfaces
+    within ``angle`` degrees of an axis (a voxel map's grid is its frame's), their median
+    thickness (12 neighbours) at least ``thickness`` of the pitch found. A cheap necessary
+    condition (Registration._partial_cells_grid) before the grid's full search."""
+    search = _grid_search(np.ascontiguousarray(points, dtype=float).reshape(-1, 3), tree,
+                          with_surfaces=True)
+    if search is None:
+        return False
+    _, f1, _, _, in_plane, layers = search
+    aligned = in_plane.min(axis=1) <= np.sin(np.deg2rad(angle)) ** 2
+    return bool(aligned.mean() >= share and np.median(layers[aligned]) * f1 >= thickness)
+
+
+def _grid_search(points: np.ndarray, tree: cKDTree | None, with_surfaces: bool = False):
     """The first two stages of :func:`voxel_grid` on a sample: (tree, the best frequency
-    (1 / pitch), its resultant (mean over the axes), the sample's centre), or None."""
+    (1 / pitch), its resultant (mean over the axes), the sample's centre), or None; with
+    ``with_surfaces`` also the sample's ``1 - n_a^2`` (M, 3) and thickness (M,)."""
     if len(points) < 50:
         return None
     tree = cKDTree(points) if tree is None else tree
@@ -421,10 +440,12 @@ def _grid_search(points: np.ndarray, tree: cKDTree | None):
     extent = float(np.ptp(sel, axis=0).max())
     step = 0.25 / (f0 * max(extent, 1.0 / f0))  # a quarter of the sharp maximum's width
     fine = f0 * (1.0 + np.arange(-0.12, 0.12 + step, step))
-    w_sel = _in_plane(points, tree, sel_rows)
+    layers = np.empty(len(sel_rows))
+    w_sel = _in_plane(points, tree, sel_rows, layers)
     score = _resultants(sel - centre0, fine, w_sel).mean(axis=1)
     best = int(np.argmax(score))
-    return tree, float(fine[best]), float(score[best]), centre0
+    found = tree, float(fine[best]), float(score[best]), centre0
+    return found + (w_sel, layers) if with_surfaces else found
 
 
 def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
