@@ -22,6 +22,7 @@ from estimation.errors import EstimationError
 from estimation.registration import RegistrationConfig, gicp, pose_error
 from estimation.registration.correspondences import (
     _resultants,
+    grid_sample,
     looks_voxelised,
     sheets_possible,
 )
@@ -134,9 +135,9 @@ def test_the_maps_own_sample_tells_thin_layers_from_thick_ones(office):
     office_part = voxel_map(points[part], labels[part], "centroids")[0]
     scan_target = scan_setting(DEFAULT_OCTOMAP, 108).target.points
     args = (gicp.PARTIAL_CELL_ANGLE, gicp.PARTIAL_MAP_SHARE, gicp.PARTIAL_MAP_THICKNESS)
-    assert sheets_possible(office_part, None, *args)
-    assert not sheets_possible(scan_target, None, *args)
-    assert sheets_possible(scan_target, None, args[0], args[1], 0.0)
+    assert sheets_possible(grid_sample(office_part), *args)
+    assert not sheets_possible(grid_sample(scan_target), *args)
+    assert sheets_possible(grid_sample(scan_target), args[0], args[1], 0.0)
 
 
 def test_a_voxel_map_looks_voxelised_and_a_raw_scan_does_not(office):

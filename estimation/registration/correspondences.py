@@ -11,6 +11,7 @@ import threading
 from collections import OrderedDict
 from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -365,7 +366,8 @@ _NO_CELLS = np.zeros(0, dtype=np.int32)
 _NO_LABELS = np.zeros(0, dtype=np.int64)
 
 
-def voxel_grid(points: np.ndarray, tree: cKDTree | None = None) -> VoxelGrid | None:
+def voxel_grid(points: np.ndarray, tree: cKDTree | None = None,
+               sample: GridSample | None = None) -> VoxelGrid | None:
     """Return the grid of a voxel-centroid map (one point per cell, the mean of the cell's
     points: Open3D's ``voxel_down_sample``, ``SemanticCloud.fuse_voxels``), or None.
 
@@ -378,18 +380,29 @@ def voxel_grid(points: np.ndarray, tree: cKDTree | None = None) -> VoxelGrid | N
     then within 0.15 % on a larger sample (the maximum interpolated by a parabola); the
     phase is the resultant's angle. Results are cached by content (a map is registered to
     many times). A voxel lattice (voxel centres, :func:`lattice_pitch`) passes too; callers
-    check that first.
+    check that first. ``sample``: the first two stages, if already taken (:func:`grid_sample`).
     """
     points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     key = (points.shape, hashlib.blake2b(points.tobytes(), digest_size=16).digest())
     if key in _GRID_CACHE:
         _GRID_CACHE.move_to_end(key)
         return _GRID_CACHE[key]
-    grid = _find_grid(points, tree)
+    grid = _find_grid(points, tree, sample)
     _GRID_CACHE[key] = grid
     if len(_GRID_CACHE) > _GRID_CACHE_SIZE:
         _GRID_CACHE.popitem(last=False)
     return grid
+
+
+class GridSample(NamedTuple):
+    """The first two stages of :func:`voxel_grid` on a sample of a cloud's points."""
+
+    tree: cKDTree
+    frequency: float  # the best candidate, 1 / pitch
+    resultant: float  # its resultant length, mean over the axes
+    centre: np.ndarray  # (3,) the sample's centre
+    in_plane: np.ndarray  # (M, 3) the sample's 1 - n_a^2 (:func:`_in_plane`)
+    thickness: np.ndarray  # (M,) its neighbourhoods' standard deviations along the normals
 
 
 def looks_voxelised(points: np.ndarray, tree: cKDTree | None = None) -> bool:
@@ -398,30 +411,26 @@ def looks_voxelised(points: np.ndarray, tree: cKDTree | None = None) -> bool:
     least ``VOXELISED_RESULTANT`` (a raw scan's stays near the sample's noise, 0.05-0.09 on
     the real rooms and their parts; voxelised scans 0.16-0.63, docs/registration.md).
     About 5 ms, whatever the cloud's size."""
-    search = _grid_search(np.ascontiguousarray(points, dtype=float).reshape(-1, 3), tree)
-    return search is not None and search[2] >= VOXELISED_RESULTANT
+    sample = grid_sample(points, tree)
+    return sample is not None and sample.resultant >= VOXELISED_RESULTANT
 
 
-def sheets_possible(points: np.ndarray, tree: cKDTree | None, angle: float, share: float,
-                    thickness: float) -> bool:
-    """Whether a voxel-centroid map may hold surface layers its grid cut into sheets: on the
-    sample of :func:`voxel_grid`'s first stages, at least ``share`` of the points on surfaces
-    within ``angle`` degrees of an axis (a voxel map's grid is its frame's), their median
-    thickness (12 neighbours) at least ``thickness`` of the pitch found. A cheap necessary
-    condition (Registration._partial_cells_grid) before the grid's full search."""
-    search = _grid_search(np.ascontiguousarray(points, dtype=float).reshape(-1, 3), tree,
-                          with_surfaces=True)
-    if search is None:
-        return False
-    _, f1, _, _, in_plane, layers = search
-    aligned = in_plane.min(axis=1) <= np.sin(np.deg2rad(angle)) ** 2
-    return bool(aligned.mean() >= share and np.median(layers[aligned]) * f1 >= thickness)
+def sheets_possible(sample: GridSample, angle: float, share: float, thickness: float) -> bool:
+    """Whether a voxel-centroid map may hold surface layers its grid cut into sheets: on its
+    :func:`grid_sample`, at least ``share`` of the points on surfaces within ``angle``
+    degrees of an axis (a voxel map's grid is its frame's), their median thickness (12
+    neighbours) at least ``thickness`` of the pitch found. A cheap necessary condition
+    (Registration._partial_cells_grid) before the grid's full search."""
+    aligned = sample.in_plane.min(axis=1) <= np.sin(np.deg2rad(angle)) ** 2
+    return bool(aligned.mean() >= share
+                and np.median(sample.thickness[aligned]) * sample.frequency >= thickness)
 
 
-def _grid_search(points: np.ndarray, tree: cKDTree | None, with_surfaces: bool = False):
-    """The first two stages of :func:`voxel_grid` on a sample: (tree, the best frequency
-    (1 / pitch), its resultant (mean over the axes), the sample's centre), or None; with
-    ``with_surfaces`` also the sample's ``1 - n_a^2`` (M, 3) and thickness (M,)."""
+def grid_sample(points: np.ndarray, tree: cKDTree | None = None) -> GridSample | None:
+    """The first two stages of :func:`voxel_grid` on a sample of ``points`` (uncached; pass
+    it on to :func:`voxel_grid`, which then does not repeat them), or None (too few points,
+    or coincident ones)."""
+    points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     if len(points) < 50:
         return None
     tree = cKDTree(points) if tree is None else tree
@@ -444,15 +453,15 @@ def _grid_search(points: np.ndarray, tree: cKDTree | None, with_surfaces: bool =
     w_sel = _in_plane(points, tree, sel_rows, layers)
     score = _resultants(sel - centre0, fine, w_sel).mean(axis=1)
     best = int(np.argmax(score))
-    found = tree, float(fine[best]), float(score[best]), centre0
-    return found + (w_sel, layers) if with_surfaces else found
+    return GridSample(tree, float(fine[best]), float(score[best]), centre0, w_sel, layers)
 
 
-def _find_grid(points: np.ndarray, tree: cKDTree | None) -> VoxelGrid | None:
-    search = _grid_search(points, tree)
-    if search is None:
+def _find_grid(points: np.ndarray, tree: cKDTree | None,
+               sample: GridSample | None = None) -> VoxelGrid | None:
+    sample = grid_sample(points, tree) if sample is None else sample
+    if sample is None:
         return None
-    tree, f1, _, centre0 = search
+    tree, f1, centre0 = sample.tree, sample.frequency, sample.centre
     wide_rows = np.arange(0, len(points), max(1, len(points) // GRID_REFINE_SAMPLE))
     wide = points[wide_rows] - centre0
     w_wide = _in_plane(points, tree, wide_rows)

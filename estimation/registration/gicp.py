@@ -33,6 +33,7 @@ from .correspondences import (
     VoxelGrid,
     _workers,
     grid_cells,
+    grid_sample,
     lattice_pitch,
     local_means,
     looks_voxelised,
@@ -1078,17 +1079,15 @@ class Registration:
                 self._grid = grid
         return self._grid is not None
 
-    @property
-    def _partial_cells_possible(self) -> bool:
-        return self.config.partial_voxel_matching and self.config.voxel_matching is not None
-
     def _search_partial_grid(self) -> None:
         """Start looking, on the second thread, for the map's grid (with the source's
         preparation, beside the first iterations), for same-voxel matching from convergence
         on where the source turns out not to lie inside the map (``partial_voxel_matching``):
         5-25 ms on 10k-40k points that a search at convergence would wait for. (Where the
         source does lie inside, the grid is searched for anyway: cached by content.)"""
-        if self._partial_cells_possible and self._partial_grid is None:
+        cfg = self.config
+        if cfg.partial_voxel_matching and cfg.voxel_matching is not None \
+                and self._partial_grid is None:
             self._partial_grid = _reverse_executor().submit(_beside, self._partial_cells_grid)
 
     def _partial_cells_grid(self) -> VoxelGrid | None:
@@ -1098,10 +1097,11 @@ class Registration:
         if looks_voxelised(self.source, self.source_tree) or lattice_pitch(
                 self.target, self.target_tree) is not None:  # (a lattice: no cells)
             return None
-        if not sheets_possible(self.target, self.target_tree, PARTIAL_CELL_ANGLE,
-                               PARTIAL_MAP_SHARE, PARTIAL_MAP_THICKNESS):
+        sample = grid_sample(self.target, self.target_tree)
+        if sample is None or not sheets_possible(sample, PARTIAL_CELL_ANGLE, PARTIAL_MAP_SHARE,
+                                                 PARTIAL_MAP_THICKNESS):
             return None  # (_sheets_likely would refuse: not worth the grid's search)
-        return voxel_grid(self.target, self.target_tree)
+        return voxel_grid(self.target, self.target_tree, sample)
 
     def _sheets_likely(self, corr: Correspondences, pitch: float) -> bool:
         """Whether the map's grid is likely to have cut its surface layers into sheets of
