@@ -103,7 +103,7 @@ from benchmarks.registration import (  # noqa: E402
     run_open3d,
     run_small_gicp,
 )
-from estimation.covariance import chi2_bounds, nees  # noqa: E402
+from estimation.covariance import chi2_bounds, nees, nees_about_common  # noqa: E402
 from estimation.fileio import atomic_write  # noqa: E402
 from estimation.registration import pose_error  # noqa: E402
 from estimation.registration.metrics import offset_about_centroid  # noqa: E402
@@ -273,13 +273,11 @@ def split_nees(octomap_dir: Path, splits: int) -> dict:
         T_ref, seconds = run_open3d(s.source, s.target, init, (d0, s.d_final))
         t_ref.append(seconds)
         d_ref.append(pose_error(T_ref, s.T_gt).d_se3)
-    scan_errors, scan_covs = np.array(scan_errors), np.array(scan_covs)
-    common = scan_errors.mean(axis=0)
-    centred = nees(scan_errors - common, scan_covs) * splits / max(splits - 1, 1)
+    split = nees_about_common(np.array(scan_errors), np.array(scan_covs))
     return {"splits": splits, "nees": values, "d_se3": d_ours, "d_se3_open3d": d_ref,
-            "common_error": common.tolist(),
-            "common_error_se": (scan_errors.std(axis=0, ddof=1) / np.sqrt(splits)).tolist(),
-            "nees_centred": centred.tolist(), "cauchy_alpha": alphas,
+            "common_error": split.common.tolist(),
+            "common_error_se": split.standard_error.tolist(),
+            "nees_about_common": split.about_common, "cauchy_alpha": alphas,
             "rms_error": np.sqrt(np.mean(np.square(errors), axis=0)).tolist(),
             "median_sigma": np.median(sigmas, axis=0).tolist(), "reasons": reasons,
             "time_s": t_ours, "time_s_open3d": t_ref, "trusted": trusted,
@@ -310,7 +308,7 @@ def report_split_nees(out: dict) -> None:
     print(f"  About the splits' common error (scan frame, [rx ry rz] mrad [tx ty tz] mm "
           f"{np.array2string(np.multiply(out['common_error'], 1e3), precision=3)}, / its "
           f"standard error {np.array2string(z, precision=1)}): mean NEES "
-          f"{np.mean(out['nees_centred']):.2f} (the variation between splits; the rest of "
+          f"{out['nees_about_common']:.2f} (the variation between splits; the rest of "
           f"the mean NEES is that common error, which all splits share)")
 
 

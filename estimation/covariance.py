@@ -77,3 +77,52 @@ def check_consistency(values: np.ndarray, dof: int, alpha: float = 0.05,
     fraction = float(inside.mean())
     passed = fraction >= min_fraction if values.shape[1] > 1 else bool(inside[0])
     return ConsistencyCheck(float(values.mean()), lower, upper, fraction, passed)
+
+
+@dataclass(frozen=True)
+class CommonErrorSplit:
+    """The NEES of runs that share an error source, split into the error common to every run
+    and the runs' variation about it (:func:`nees_about_common`).
+
+    Attributes
+    ----------
+    common : (n,) the runs' mean error
+    standard_error : (n,) its standard error (the runs' spread over sqrt(N))
+    mean : mean NEES of the errors
+    common_part : mean over the runs of common^T P_i^-1 common
+    about_common : N / (N - 1) times the mean of (e_i - common)^T P_i^-1 (e_i - common), the
+        variation's NEES (unbiased for its expectation; without the factor the two parts add
+        up to ``mean`` where the covariances are alike)
+    """
+
+    common: np.ndarray
+    standard_error: np.ndarray
+    mean: float
+    common_part: float
+    about_common: float
+
+
+def nees_about_common(errors: np.ndarray, covariances: np.ndarray) -> CommonErrorSplit:
+    """Split the mean NEES of ``errors`` (N, n) against ``covariances`` (N, n, n) into the
+    runs' common error and their variation about it.
+
+    Runs that share a fixed error source, such as one map that every registration of a
+    benchmark cell uses or one scan that every split re-samples, share its error: their mean
+    NEES is then in large part ONE draw of that error, not N, and the chi-square bounds of N
+    independent runs (:func:`chi2_bounds`) do not apply to it. The variation about the common
+    error is what N runs do measure. The errors must be expressed in one frame (for a
+    registration, the map's: ``T_gt.AdjointMap() @ tangent``), and N >= 2.
+    """
+    errors = np.asarray(errors, dtype=float)
+    covariances = np.asarray(covariances, dtype=float)
+    if errors.ndim != 2 or len(errors) < 2:
+        raise EstimationError(f"errors must be (N, n) with N >= 2, got shape {errors.shape}")
+    n_runs = len(errors)
+    common = errors.mean(axis=0)
+    centred = errors - common
+    return CommonErrorSplit(
+        common=common,
+        standard_error=errors.std(axis=0, ddof=1) / np.sqrt(n_runs),
+        mean=float(nees(errors, covariances).mean()),
+        common_part=float(nees(np.broadcast_to(common, errors.shape), covariances).mean()),
+        about_common=float(nees(centred, covariances).mean() * n_runs / (n_runs - 1)))

@@ -271,3 +271,48 @@ def test_benchmark_refuses_a_bad_map_error_or_room(argv, capsys):
         main(argv)
     assert info.value.code == 2
     assert argv[0] in capsys.readouterr().err
+
+
+def test_a_shifted_grid_moves_the_cell_walls():
+    """``voxel_map(..., shift=s)``: the cell walls at k pitch - s; no shift is the plain grid."""
+    rng = np.random.default_rng(3)
+    points = rng.uniform(-1.0, 1.0, (4000, 3))
+    labels = rng.integers(0, 4, len(points))
+    plain = voxel_map(points, labels, "centres")
+    np.testing.assert_array_equal(voxel_map(points, labels, "centres", shift=np.zeros(3))[0],
+                                  plain[0])
+    shift = np.array([0.01, 0.02, 0.005])
+    centres, _ = voxel_map(points, labels, "centres", shift=shift)
+    np.testing.assert_allclose(np.mod(centres + shift, 0.03), 0.015, atol=1e-9)
+    # a centroid lies in its own cell of the shifted grid
+    centroids, _ = voxel_map(points, labels, "centroids", shift=shift)
+    assert len(centroids) == len(centres)
+    cells = {tuple(c) for c in np.floor((centres + shift) / 0.03).astype(int)}
+    assert {tuple(c) for c in np.floor((centroids + shift) / 0.03).astype(int)} == cells
+
+
+def test_random_map_phase_gives_each_trial_its_own_map(room, monkeypatch, capsys):
+    """``--map-phase random``: each trial's map is voxelised with its own grid phase, the
+    trial's source as with one fixed map; the report splits off the trials' common error."""
+    import benchmarks.registration_indoor as bench
+
+    points, labels, _ = room
+    calls = []
+    plain = bench.voxel_map
+
+    def recording(*args, **kwargs):
+        calls.append(kwargs.get("shift"))
+        return plain(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "voxel_map", recording)
+    cells = {phase: bench.run_cell(points, labels, "centroids", "small", 2, ["gicp-se3"],
+                                   source_points=3000, map_phase=phase)
+             for phase in ("fixed", "random")}
+    assert len(calls) == 3 and calls[0] is None  # one map for "fixed", one per trial
+    assert calls[1] is not None and not np.allclose(calls[1], calls[2])
+    fixed, random = (cells[p]["rows"]["gicp-se3"] for p in ("fixed", "random"))
+    for a, b in zip(fixed, random):
+        assert a["error_map"] != b["error_map"]  # another map, the same source otherwise
+    cells["fixed"]["rows"]["open3d-gicp"] = fixed  # the report's reference column
+    bench.report("tum", "centroids", "small", cells["fixed"])
+    assert "about the common error of its 2 runs within 0.1 m" in capsys.readouterr().out
