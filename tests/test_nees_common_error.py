@@ -46,8 +46,8 @@ def test_the_variation_about_the_common_error_is_unbiased():
 def test_a_cells_mean_nees_is_one_draw_of_the_common_error():
     """Runs that share half their error variance: a cell's mean NEES, calibrated over the
     population (it averages 6), falls outside the bounds of N independent runs far more
-    often than 5 %, because its common part is one draw; the variation about it does not
-    (its expectation is 3, inside 3 +- its own spread)."""
+    often than 5 %, because its common part is one draw; runs with no common error stay
+    inside them about 95 % of the time."""
     rng = np.random.default_rng(2)
     n_runs = 20
     lower, upper = chi2_bounds(DOF, n_runs)
