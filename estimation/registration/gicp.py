@@ -801,6 +801,9 @@ class Registration:
         self._grid: VoxelGrid | int | None = 0
         self._nearest = None
         self._partial_grid: Future | None = None
+        # the first stages of the map's grid search (grid_sample), kept by _partial_cells_grid
+        # for voxel_grid where the source turns out to lie inside the map
+        self._target_sample = None
         self._aligned: np.ndarray | None = None  # per target row: normal along a grid axis
         self._alpha: float = self.config.cauchy_alpha  # the kernel's alpha in use (run())
         # neighbour caches of the final d_max prepared on the second thread (run()): this
@@ -1069,8 +1072,8 @@ class Registration:
         if source_inside_target(*self.overlap(T, self.cluster_size(T, None),
                                               OVERLAP_SAMPLES // 4)):
             if partial is not None:
-                partial.result()  # (one search of the map's grid at a time)
-            self._grid = voxel_grid(self.target, self.target_tree)
+                partial.result()  # (one search of the map's grid at a time; its sample)
+            self._grid = voxel_grid(self.target, self.target_tree, self._target_sample)
         elif d_max is not None and partial is not None:
             grid = partial.result()
             corr = None if grid is None else self.correspondences(T, d_max)
@@ -1097,7 +1100,7 @@ class Registration:
         if looks_voxelised(self.source, self.source_tree) or lattice_pitch(
                 self.target, self.target_tree) is not None:  # (a lattice: no cells)
             return None
-        sample = grid_sample(self.target, self.target_tree)
+        sample = self._target_sample = grid_sample(self.target, self.target_tree)
         if sample is None or not sheets_possible(sample, PARTIAL_CELL_ANGLE, PARTIAL_MAP_SHARE,
                                                  PARTIAL_MAP_THICKNESS):
             return None  # (_sheets_likely would refuse: not worth the grid's search)
