@@ -833,19 +833,16 @@ class Registration:
     def source_cov(self) -> np.ndarray | LazyCovariances:
         """Source covariances, indexable by row arrays."""
         if self._source_cov is None:
-            radius = self._means_radius
-            if radius is None:
-                # per row on first use, as the target's: only the matched rows are needed
-                # (the scan splits overlap by less than half: 0.084 -> 0.078 s a registration)
-                self._source_cov = LazyCovariances(self.source, self.source_tree,
-                                                   self.config.k_neighbours,
-                                                   self.config.epsilon)
-            else:
-                # one neighbour query gives the covariances and the lattice's local means
-                self._source_cov, self._source_pos = neighbourhoods(
-                    self.source, self.config.k_neighbours, self.config.epsilon,
-                    self.source_tree, radius=radius,
-                    min_points=self.config.surface_min_points)
+            # per row on first use, as the target's: only the matched rows are needed (the
+            # scan splits overlap by less than half: 0.084 -> 0.078 s a registration), and
+            # most are computed on the second thread (_prefetch_source, _prepare_forward);
+            # with the local surface positions' radius, a row's local mean comes from the
+            # same neighbour query (all rows at once on this thread took the simulated
+            # room's Semantic-ICP at 10k 36 ms of 157, while the second core idled)
+            self._source_cov = LazyCovariances(self.source, self.source_tree,
+                                               self.config.k_neighbours, self.config.epsilon,
+                                               self._means_radius,
+                                               self.config.surface_min_points)
         return self._source_cov
 
     @property
@@ -956,12 +953,14 @@ class Registration:
         """
         if self.surface_radius is None:
             return self.source[corr.source_idx], self.target[corr.target_idx]
-        _ = self.source_cov
+        target = self._target_stats.means(corr.target_idx)
+        cov = self.source_cov
+        if isinstance(cov, LazyCovariances) and cov.radius is not None:
+            return cov.means(corr.source_idx), target
         if self._source_pos is None:  # covariances were given: the means need a query
             self._source_pos = local_means(self.source, cKDTree(self.source),
                                            self._means_radius, self.config.surface_min_points)
-        return (self._source_pos[corr.source_idx],
-                self._target_stats.means(corr.target_idx))
+        return self._source_pos[corr.source_idx], target
 
     def _matched_arrays(self, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
         """Return whole (source, target) position arrays whose rows ``corr.source_idx`` and
@@ -969,6 +968,9 @@ class Registration:
         if self.surface_radius is None:
             return self.source, self.target
         _ = self.matched_points(corr)  # fills the source means and the target's rows
+        cov = self.source_cov
+        if isinstance(cov, LazyCovariances) and cov.radius is not None:
+            return cov.mean_values, self._target_stats.mean_values
         return self._source_pos, self._target_stats.mean_values
 
     @property
@@ -1868,6 +1870,8 @@ class Registration:
         rev._surface_radius = self._surface_radius
         if self._surface_radius is not None:  # the local means come with the covariances
             rev._source_pos = self._target_stats.means(np.arange(len(self.target)))
+            if isinstance(self._source_cov, LazyCovariances):
+                rev._target_lazy = self._source_cov  # (its rows' means, those computed kept)
         rev._sigma, rev._alpha, rev._block = self._sigma, self._alpha, self._block
         # (the reverse's boundary_radius is this source's; overlap() has computed it already)
         rev._boundary_radius = self._source_radius
