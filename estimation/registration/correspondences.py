@@ -5,6 +5,7 @@ small dataclasses; KD-trees are :class:`scipy.spatial.cKDTree`.
 """
 from __future__ import annotations
 
+import copy
 import hashlib
 import os
 import threading
@@ -598,6 +599,15 @@ class NeighbourCache:
                 new[:old] = kept[:size]
         self.anchor, self.candidates, self.reach, self.bound = grown
         self.size = size
+
+    def copy(self) -> NeighbourCache:
+        """A copy whose rows change apart from this cache's (the tree and points shared)."""
+        twin = copy.copy(self)
+        for name in ("anchor", "candidates", "reach", "bound", "classes"):
+            value = getattr(self, name, None)
+            if value is not None:
+                setattr(twin, name, value.copy())
+        return twin
 
     def _rows(self, points: np.ndarray, rows: np.ndarray | None) -> np.ndarray:
         """The cache rows of ``points``, room made for them."""

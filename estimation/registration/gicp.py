@@ -12,6 +12,7 @@ after the correspondence distance schedule has reached ``max_correspondence_dist
 """
 from __future__ import annotations
 
+import copy
 import functools
 import math
 import threading
@@ -1849,6 +1850,20 @@ class Registration:
         _reverse_executor().submit(prepare)
         return ready
 
+    def _twin(self) -> Registration:
+        """A copy of this registration whose correspondences at other poses may run on another
+        thread beside this one's: what both read is shared (trees, covariances, which both
+        fill row by row, the grid), what the searches change is the twin's own (copies of
+        the neighbour caches, the E-step's sigma); no prefetching from it."""
+        twin = copy.copy(self)
+        twin._prefetching = False
+        if self._cache is not None:
+            twin._cache = self._cache.copy()
+        if self._class_cache_owner is self._cache and self._cache is not None:
+            twin._class_cache_owner = twin._cache
+            twin._class_cache = {rank: cache.copy() for rank, cache in self._class_cache.items()}
+        return twin
+
     def _reverse_registration(self) -> Registration:
         """Return the registration of the target to the source, sharing what is shared.
 
@@ -2031,24 +2046,37 @@ class Registration:
         else:
             F0 = sol.scores.sum(axis=0)
         sigma = self._sigma  # Semantic-ICP's E-step re-estimates it; keep the solution's
-        D = np.empty((6, 6))
-        for i in range(6):
+
+        def score_sum(reg: Registration, i: int) -> np.ndarray | None:
             xi = np.zeros(6)
             xi[i] = steps[i]
             T_i = T @ gtsam.Pose3.Expmap(xi).matrix()
-            self._sigma = sigma
-            corr = self.correspondences(T_i, d_max, rows)
+            reg._sigma = sigma
+            corr = reg.correspondences(T_i, d_max, rows)
             if len(corr) < self.config.min_inliers:
-                self._sigma = sigma
-                return A
-            src, tgt = self.matched_points(corr)
-            Ut = self._whitening(corr, T_i[:3, :3])
+                return None
+            src, tgt = reg.matched_points(corr)
+            Ut = reg._whitening(corr, T_i[:3, :3])
             terms = gicp_terms(T_i, src, tgt, Ut)
-            w = self._weights(terms.mahalanobis, corr.weights)
+            w = reg._weights(terms.mahalanobis, corr.weights)
             # sum_k w_k J_k^T r_k as one matrix-vector product
-            F = terms.jacobians.reshape(-1, 6).T @ (w[:, None] * terms.residuals).reshape(-1)
-            D[:, i] = scale * (F - F0) / steps[i]
+            return terms.jacobians.reshape(-1, 6).T @ (w[:, None] * terms.residuals).reshape(-1)
+
+        # the six poses are independent: half of them on the second thread, with a twin of
+        # this registration (its own neighbour caches), where that thread is free; one that
+        # has not started when this thread is done with its half is done here (the same
+        # sums either way: the caches' answers are exact)
+        twin = self._twin()
+        beside = {i: _reverse_executor().submit(_beside, score_sum, twin, i) for i in (3, 4, 5)}
+        sums = {i: score_sum(self, i) for i in (0, 1, 2)}
+        for i, done in beside.items():
+            sums[i] = score_sum(self, i) if done.cancel() else done.result()
         self._sigma = sigma
+        D = np.empty((6, 6))
+        for i in range(6):
+            if sums[i] is None:
+                return A
+            D[:, i] = scale * (sums[i] - F0) / steps[i]
         # relative to A: A = L L^T, S = L^-1 D L^-T, eigenvalues limited to [0.25, 1]
         lam_A, V_A = np.linalg.eigh(A)
         if lam_A.min() <= 0.0:

@@ -1,0 +1,112 @@
+"""Work a registration hands to its second thread: the same results as on one thread.
+
+The re-matched bread's six poses (half of them on the second thread, with a twin of the
+registration and copies of its neighbour caches) and the source's per-row covariances and
+local means on a voxel lattice (computed row by row, on either thread)."""
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+from test_registration import make_pair, one_hot
+from test_registration_model_error import voxel_map_pair
+
+from estimation.registration import Registration, RegistrationConfig, SemanticIndex, gicp
+from estimation.registration.correspondences import (
+    ClassNeighbourCache,
+    LazyCovariances,
+    NeighbourCache,
+    local_means,
+    neighbourhoods,
+)
+
+
+def _cache_arrays(cache):
+    return [getattr(cache, name).copy() for name in ("anchor", "candidates", "reach", "bound")]
+
+
+@pytest.mark.parametrize("kind", ["geometric", "class"])
+def test_a_cache_copy_changes_apart_and_stays_exact(rng, kind):
+    target = rng.uniform(0, 1, (3000, 3))
+    points = rng.uniform(0, 1, (600, 3))
+    if kind == "geometric":
+        cache = NeighbourCache(cKDTree(target), 0.05, 8, 600)
+    else:
+        labels = rng.integers(0, 3, 3000)
+        cache = ClassNeighbourCache(SemanticIndex(target, np.eye(3)[labels]), 0.05,
+                                    rng.integers(0, 3, 600))
+    cache.query(points)
+    before = _cache_arrays(cache)
+    twin = cache.copy()
+    moved = points + rng.normal(0, 0.05, points.shape)  # far: most rows re-queried
+    dist, idx = twin.query(moved)
+    for kept, now in zip(before, _cache_arrays(cache)):
+        np.testing.assert_array_equal(kept, now)  # the original's rows did not change
+    assert not np.array_equal(twin.anchor, cache.anchor)
+    np.testing.assert_array_equal(cache.query(moved)[1], idx)  # both exact: same answers
+    assert twin.tree is cache.tree if kind == "geometric" else twin.index is cache.index
+
+
+def _bread(reg, result, semantic_sigma):
+    d_max = reg.config.max_correspondence_distance
+    reg._sigma = semantic_sigma
+    sol = reg.solution_terms(result.T, d_max)  # (its E-step sets the solution's sigma)
+    sigma = reg._sigma
+    bread = reg.reassociation_hessian(result.T, d_max, sol, result.covariance)
+    assert reg._sigma == sigma  # the twin's E-steps did not change this registration's
+    return bread
+
+
+def test_the_rematched_bread_is_the_same_whichever_thread_computes_it(monkeypatch):
+    """Semantic-ICP (class caches, the E-step's sigma): the bread with half its poses on the
+    second thread equals, bit for bit, the bread with that thread busy (its tasks cancelled
+    and done here); the twin's searches leave this registration's caches and sigma as they
+    were."""
+    source, labels_s, target, labels_t, _ = make_pair(15, 1500, 0.01)
+    reg = Registration(source, target, RegistrationConfig(),
+                       one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9))
+    result = reg.run()
+    sigma = reg._sigma
+    threads = []
+    plain = gicp.Registration.correspondences
+
+    def spied(self, *args, **kwargs):
+        threads.append(threading.current_thread() is threading.main_thread())
+        return plain(self, *args, **kwargs)
+
+    monkeypatch.setattr(gicp.Registration, "correspondences", spied)
+    beside = _bread(reg, result, sigma)
+    assert not all(threads[1:])  # (the first: solution_terms) some poses on the second thread
+    threads.clear()
+    release = threading.Event()
+    busy = gicp._reverse_executor().submit(release.wait, 30)
+    try:
+        alone = _bread(reg, result, sigma)
+    finally:
+        release.set()
+        busy.result()
+    assert all(threads)  # every pose on this thread
+    np.testing.assert_array_equal(beside, alone)
+
+
+def test_source_rows_on_a_lattice_map_are_computed_as_all_at_once():
+    """On a voxel lattice the source's covariances and local means are per row, on either
+    thread: the rows the registration computed equal one query of all the source's points."""
+    source, target, T_gt = voxel_map_pair(3)
+    reg = Registration(source, target, RegistrationConfig(max_correspondence_distance=0.3))
+    result = reg.run()
+    assert result.converged and reg.surface_radius is not None
+    cov = reg.source_cov
+    assert isinstance(cov, LazyCovariances) and cov.radius == reg._means_radius
+    done = np.flatnonzero(cov.done)
+    assert len(done) > 0.9 * len(source)
+    covs, means = neighbourhoods(source, reg.config.k_neighbours, reg.config.epsilon,
+                                 cKDTree(source), radius=reg._means_radius,
+                                 min_points=reg.config.surface_min_points)
+    np.testing.assert_array_equal(cov.values[done], covs[done])
+    np.testing.assert_array_equal(cov.mean_values[done], means[done])
+    np.testing.assert_array_equal(
+        cov.mean_values[done], local_means(source, cKDTree(source), reg._means_radius,
+                                           reg.config.surface_min_points)[done])
