@@ -110,3 +110,35 @@ def test_source_rows_on_a_lattice_map_are_computed_as_all_at_once():
     np.testing.assert_array_equal(
         cov.mean_values[done], local_means(source, cKDTree(source), reg._means_radius,
                                            reg.config.surface_min_points)[done])
+
+
+def test_rows_two_threads_need_are_computed_once_and_shared(rng):
+    """A prefetch on a second thread and this thread's fill of the same rows: every row is
+    computed once (this thread waits for the rows the other is computing and takes its own
+    in chunks meanwhile), and the values are those of one query of all of them."""
+    points = rng.uniform(0, 1, (5000, 3))
+    tree = cKDTree(points)
+    lazy = LazyCovariances(points, tree, 20, 1e-3, radius=0.05)
+    plain, computed, started = lazy._compute, [], threading.Event()
+
+    def slow(rows):  # the second thread's chunks take long: this one shares them
+        computed.append((threading.current_thread() is threading.main_thread(), rows.copy()))
+        if threading.current_thread() is not threading.main_thread():
+            started.set()
+            threading.Event().wait(0.05)
+        plain(rows)
+
+    lazy._compute = slow
+    rows = rng.permutation(5000)[:3000]
+    worker = threading.Thread(target=lazy.prefetch, args=(rows, 512))
+    worker.start()
+    assert started.wait(10)
+    covs = lazy[rows]
+    worker.join()
+    counts = np.bincount(np.concatenate([r for _, r in computed]), minlength=5000)
+    assert counts.max() == 1 and np.all(counts[rows] == 1)
+    assert {here for here, _ in computed} == {True, False}  # both threads computed rows
+    ref_covs, ref_means = neighbourhoods(points, 20, 1e-3, tree, rows, radius=0.05)
+    np.testing.assert_array_equal(covs, ref_covs)
+    np.testing.assert_array_equal(lazy.means(rows), ref_means)
+    assert lazy._computing == 0 and not lazy._claimed.any()

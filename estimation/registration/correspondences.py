@@ -117,6 +117,10 @@ def _means_within(points, query, dist, idx, radius, min_points) -> np.ndarray:
     return means
 
 
+# rows a thread takes at a time while another computes rows of the same LazyCovariances
+SHARED_CHUNK = 256
+
+
 class LazyCovariances:
     """Per-point GICP covariances (and local means) computed on first use, row by row, cached.
 
@@ -139,13 +143,21 @@ class LazyCovariances:
         self.mean_values = None if radius is None else np.empty((len(points), 3))
         self.done = np.zeros(len(points), bool)
         self._rank: np.ndarray | None = None
+        # the rows a thread is computing now, and how many threads are (_fill)
+        self._claimed = np.zeros(len(points), bool)
+        self._computing = 0
+        self._changed = threading.Condition()
 
-    def _fill(self, idx: np.ndarray) -> None:
+    def _fill(self, idx: np.ndarray, wait: bool = True) -> None:
         # Two threads may fill rows at once (a symmetric registration's two directions, the
-        # preparation of the next ones: Registration._prepare_forward): no lock is held while
-        # computing, so neither waits for the other's rows; a row both compute gets the same
-        # values twice (a row's neighbours and covariance do not depend on the other rows),
-        # and it is marked done only after its values are written
+        # preparation of the next ones: Registration._prepare_forward). Each row is computed
+        # once: a thread claims the rows it computes (under the lock, which is not held while
+        # computing) and computes those no other thread has claimed; the rows another thread
+        # is computing it waits for (``wait``: rows needed now) or leaves to it (a prefetch).
+        # While another thread computes rows, it takes its own in chunks, so that the two
+        # share them. A row is marked done only after its values are written. (Both threads
+        # computing the rows both needed took the simulated room's first iteration 6-10 ms
+        # more; a row's values do not depend on which thread computes it.)
         missing = idx[~self.done[idx]]
         if not len(missing):
             return
@@ -155,6 +167,27 @@ class LazyCovariances:
             # faster than the cloud's own order, e.g. a voxel filter's hash order); each
             # row's neighbours do not depend on the order
             rows = rows[np.argsort(self._leaf_rank[rows])]
+        while True:
+            with self._changed:
+                free = rows[~(self.done[rows] | self._claimed[rows])]
+                if not len(free):
+                    if not wait or self.done[rows].all():
+                        return
+                    self._changed.wait()  # (for rows another thread is computing now)
+                    continue
+                if self._computing:
+                    free = free[:SHARED_CHUNK]
+                self._claimed[free] = True
+                self._computing += 1
+            try:
+                self._compute(free)
+            finally:
+                with self._changed:
+                    self._claimed[free] = False
+                    self._computing -= 1
+                    self._changed.notify_all()
+
+    def _compute(self, rows: np.ndarray) -> None:
         thickness = np.empty(len(rows))
         covs, means = neighbourhoods(self.points, self.k, self.epsilon, self.tree, rows,
                                      self.radius, self.min_points, thickness=thickness)
@@ -176,14 +209,14 @@ class LazyCovariances:
     def prefetch(self, idx: np.ndarray, chunk: int = 512,
                  stop: threading.Event | None = None) -> None:
         """Compute the missing rows of ``idx`` in chunks of ``chunk`` (in leaf order), from a
-        second thread: rows another thread computes meanwhile are skipped from the next chunk
-        on, and ``stop`` (set) ends it between chunks."""
+        second thread: rows another thread computes meanwhile are left to it, and ``stop``
+        (set) ends it between chunks."""
         rows = np.unique(idx[~self.done[idx]])
         rows = rows[np.argsort(self._leaf_rank[rows])]
         for start in range(0, len(rows), chunk):
             if stop is not None and stop.is_set():
                 return
-            self._fill(rows[start:start + chunk])
+            self._fill(rows[start:start + chunk], wait=False)
 
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
         self._fill(idx)
