@@ -142,3 +142,46 @@ def test_rows_two_threads_need_are_computed_once_and_shared(rng):
     np.testing.assert_array_equal(covs, ref_covs)
     np.testing.assert_array_equal(lazy.means(rows), ref_means)
     assert lazy._computing == 0 and not lazy._claimed.any()
+
+
+def test_a_source_inside_a_centroid_map_gets_the_same_result_with_its_second_thread_busy(
+        rng, monkeypatch):
+    """The map's model terms and half of the re-matched bread run on the second thread
+    (a source inside a voxel-centroid map has no reverse direction); with that thread busy
+    through the covariance, they run here, and the estimate, covariance and diagnostic are
+    the same bit for bit."""
+    from test_registration_voxel_matching import centroids, thick_room
+
+    room = thick_room(rng)
+    target = centroids(room, 0.03, np.array([0.004, 0.011, -0.008]))
+    source = room[room[:, 0] < 2.0][::40]
+    source = source + rng.normal(scale=0.005, size=source.shape)
+    init = np.eye(4)
+    init[:3, 3] = [0.01, -0.015, 0.008]
+    where = []
+    plain_terms, plain_finish = gicp.Registration._grid_terms, gicp.Registration._finish
+
+    def grid_terms(self, sol):
+        where.append(threading.current_thread() is threading.main_thread())
+        return plain_terms(self, sol)
+
+    monkeypatch.setattr(gicp.Registration, "_grid_terms", grid_terms)
+    free = Registration(source, target, RegistrationConfig()).run(init)
+    assert where == [False] and free.diagnostic.map_error is not None
+
+    def busy_finish(self, *args):
+        release = threading.Event()
+        busy = gicp._reverse_executor().submit(release.wait, 60)
+        try:
+            return plain_finish(self, *args)
+        finally:
+            release.set()
+            busy.result()
+
+    monkeypatch.setattr(gicp.Registration, "_finish", busy_finish)
+    alone = Registration(source, target, RegistrationConfig()).run(init)
+    assert where == [False, True]
+    np.testing.assert_array_equal(alone.T, free.T)
+    np.testing.assert_array_equal(alone.covariance, free.covariance)
+    for name, value in vars(free.diagnostic).items():
+        np.testing.assert_array_equal(getattr(alone.diagnostic, name), value, err_msg=name)
