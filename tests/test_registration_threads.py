@@ -69,17 +69,18 @@ def test_the_rematched_bread_is_the_same_whichever_thread_computes_it(monkeypatc
                        one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9))
     result = reg.run()
     sigma = reg._sigma
-    threads = []
+    calls = []  # (on this thread, with this registration)
     plain = gicp.Registration.correspondences
 
     def spied(self, *args, **kwargs):
-        threads.append(threading.current_thread() is threading.main_thread())
+        calls.append((threading.current_thread() is threading.main_thread(), self is reg))
         return plain(self, *args, **kwargs)
 
     monkeypatch.setattr(gicp.Registration, "correspondences", spied)
     beside = _bread(reg, result, sigma)
-    assert not all(threads[1:])  # (the first: solution_terms) some poses on the second thread
-    threads.clear()
+    # (the first call: solution_terms) some poses on the second thread, each with the twin
+    assert (False, False) in calls[1:] and set(calls) <= {(True, True), (False, False)}
+    calls.clear()
     release = threading.Event()
     busy = gicp._reverse_executor().submit(release.wait, 30)
     try:
@@ -87,7 +88,8 @@ def test_the_rematched_bread_is_the_same_whichever_thread_computes_it(monkeypatc
     finally:
         release.set()
         busy.result()
-    assert all(threads)  # every pose on this thread
+    # every pose here, with this registration: never the twin the second thread's tasks share
+    assert set(calls) == {(True, True)}
     np.testing.assert_array_equal(beside, alone)
 
 

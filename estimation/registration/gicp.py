@@ -655,6 +655,7 @@ def _beside(fn, *args):
     with queries_beside():
         return fn(*args)
 
+
 class _Beside:
     """``fn(*args)`` started on the second thread; :meth:`result` runs it on the calling
     thread instead where that thread has not begun it (busy: the reverse direction), so
@@ -665,10 +666,12 @@ class _Beside:
         self._call = fn, args
         self._future = _reverse_executor().submit(_beside, fn, *args)
 
-    def result(self):
+    def result(self, *here):
+        """The result; ``here``: other arguments for it where it runs on this thread (e.g. not
+        the twin that the second thread's tasks share: :meth:`Registration._twin`)."""
         if self._future.cancel():
             fn, args = self._call
-            return fn(*args)
+            return fn(*(here or args))
         return self._future.result()
 
 
@@ -2098,13 +2101,14 @@ class Registration:
             return terms.jacobians.reshape(-1, 6).T @ (w[:, None] * terms.residuals).reshape(-1)
 
         # the six poses are independent: half of them on the second thread, with a twin of
-        # this registration (its own neighbour caches), where that thread is free; one that
-        # has not started when this thread is done with its half is done here (the same
-        # sums either way: the caches' answers are exact)
+        # this registration (its own neighbour caches, which only that thread uses), where
+        # that thread is free; one that has not started when this thread is done with its
+        # half is done here, with this registration (the same sums either way: the caches'
+        # answers are exact)
         twin = self._twin()
         beside = {i: _Beside(score_sum, twin, i) for i in (3, 4, 5)}
         sums = {i: score_sum(self, i) for i in (0, 1, 2)}
-        sums.update({i: done.result() for i, done in beside.items()})
+        sums.update({i: done.result(self, i) for i, done in beside.items()})
         self._sigma = sigma
         D = np.empty((6, 6))
         for i in range(6):
