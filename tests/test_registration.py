@@ -390,6 +390,45 @@ def test_one_step_from_the_normal_equations_is_gtsams_gauss_newton_step(rng):
                                solve_weighted(start, factor, "gn", 1), atol=1e-12)
 
 
+def test_solution_sums_equal_the_numpy_products(rng):
+    """The solution's one-pass sums (Registration.solution_terms) against the numpy
+    products they replace: H = sum w J^T J, sum c g g^T, the scores w J^T r, the target
+    normals from the covariances' largest diagonal of I - C, the residuals along them and
+    w J^T U^T n."""
+    from estimation.registration.correspondences import transform_points
+    from estimation.registration.factors import solution_sums
+
+    source, _, target, _, T_gt = make_pair(5, 600)
+    reg = Registration(source, target, RegistrationConfig())
+    corr = reg.correspondences(T_gt, 0.3)
+    T = T_gt @ random_pose(rng, 0.01, 0.02)
+    src, tgt = source[corr.source_idx], target[corr.target_idx]
+    cov_t = reg.target_cov.all()
+    Ut = whitening(cov_t[corr.target_idx], reg.source_cov[corr.source_idx], T[:3, :3])
+    terms = gicp_terms(T, src, tgt, Ut)
+    w, c = rng.uniform(0.2, 1.0, len(corr)), rng.uniform(-0.5, 0.0, len(corr))
+    H, curvature, scores, normals, along, sens = solution_sums(T, src, tgt, Ut, terms, w, c,
+                                                               cov_t, corr.target_idx)
+    J, r = terms.jacobians, terms.residuals
+    g = np.einsum("mji,mj->mi", J, r)
+    close = {"rtol": 1e-10, "atol": 1e-12}
+    np.testing.assert_allclose(H, np.einsum("m,mji,mjk->ik", w, J, J), **close)
+    np.testing.assert_allclose(curvature, np.einsum("m,mi,mk->ik", c, g, g), **close)
+    np.testing.assert_allclose(scores, w[:, None] * g, **close)
+    D = np.eye(3) - cov_t[corr.target_idx]
+    n = D[np.arange(len(D)), :, np.argmax(np.einsum("mii->mi", D), axis=1)]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    np.testing.assert_allclose(normals, n, **close)
+    # the normal of each target neighbourhood (up to sign): the covariance's flat direction
+    flat = np.einsum("mi,mij,mj->m", normals, cov_t[corr.target_idx], normals)
+    assert np.all(flat < 0.01)
+    np.testing.assert_allclose(along, np.einsum("mi,mi->m", n, tgt - transform_points(T, src)),
+                               **close)
+    np.testing.assert_allclose(sens, w[:, None] * np.einsum("mij,mi->mj", J,
+                                                            np.einsum("mij,mj->mi", Ut, n)),
+                               **close)
+
+
 def test_a_step_in_degenerate_geometry_leaves_the_free_direction_alone():
     # collinear pairs: rotation about the line is free; GTSAM finds the system indeterminate,
     # the damped step must not move along it (and must not raise)

@@ -241,6 +241,62 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
 
 
 @numba.njit(cache=True)
+def solution_sums(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
+                  J: np.ndarray, rw: np.ndarray, w: np.ndarray, c: np.ndarray,
+                  cov_target: np.ndarray, target_rows: np.ndarray):
+    """Return the solution's sums and per-pair terms in one pass (Registration.solution_terms):
+    H = sum w J^T J, the curvature sum sum c g g^T (g = J^T rw), the scores w g (M, 6), the
+    target normals (M, 3) (the column of I - C with the largest diagonal, normalised; C the
+    target covariance ``I - (1 - eps) n n^T`` of the pair's row), the residuals along them
+    n^T (x_t - R x_s - t) (M,) and the sensitivities w J^T (U^T n) (M, 6)."""
+    m = J.shape[0]
+    H = np.zeros((6, 6))
+    curvature = np.zeros((6, 6))
+    scores = np.empty((m, 6))
+    normals = np.empty((m, 3))
+    along = np.empty(m)
+    sens = np.empty((m, 6))
+    g = np.empty(6)
+    n = np.empty(3)
+    Un = np.empty(3)
+    for k in range(m):
+        wk, ck = w[k], c[k]
+        for j in range(6):
+            g[j] = J[k, 0, j] * rw[k, 0] + J[k, 1, j] * rw[k, 1] + J[k, 2, j] * rw[k, 2]
+            scores[k, j] = wk * g[j]
+        for i in range(6):
+            for j in range(i, 6):
+                h = wk * (J[k, 0, i] * J[k, 0, j] + J[k, 1, i] * J[k, 1, j]
+                          + J[k, 2, i] * J[k, 2, j])
+                H[i, j] += h
+                curvature[i, j] += ck * g[i] * g[j]
+        C = cov_target[target_rows[k]]
+        col, best = 0, 1.0 - C[0, 0]
+        for a in range(1, 3):
+            if 1.0 - C[a, a] > best:
+                col, best = a, 1.0 - C[a, a]
+        for a in range(3):
+            n[a] = (1.0 if a == col else 0.0) - C[a, col]
+        norm = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+        r = 0.0
+        for a in range(3):
+            n[a] /= norm
+            normals[k, a] = n[a]
+            r += n[a] * (target[k, a] - (T[a, 0] * source[k, 0] + T[a, 1] * source[k, 1]
+                                          + T[a, 2] * source[k, 2] + T[a, 3]))
+        along[k] = r
+        for a in range(3):
+            Un[a] = Ut[k, a, 0] * n[0] + Ut[k, a, 1] * n[1] + Ut[k, a, 2] * n[2]
+        for j in range(6):
+            sens[k, j] = wk * (J[k, 0, j] * Un[0] + J[k, 1, j] * Un[1] + J[k, 2, j] * Un[2])
+    for i in range(6):
+        for j in range(i):
+            H[i, j] = H[j, i]
+            curvature[i, j] = curvature[j, i]
+    return H, curvature, scores, normals, along, sens
+
+
+@numba.njit(cache=True)
 def gicp_mahalanobis(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
                      target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray) -> np.ndarray:
     """Return (M,) e of :func:`gicp_terms` (the same operations) of the pairs

@@ -102,6 +102,20 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
     return GicpTerms(rw, J if jacobians else None, e)
 
 
+def solution_sums(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
+                  terms: GicpTerms, w: np.ndarray, c: np.ndarray, cov_target: np.ndarray,
+                  target_rows: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Return (H, curvature sum, scores, target normals, residuals along them,
+    sensitivities) of the matched pairs at ``T`` in one pass (``terms``: their
+    :func:`gicp_terms`; ``w`` the IRLS weights, ``c`` the robust cost's curvature terms;
+    ``cov_target[target_rows]`` the pairs' target covariances ``I - (1 - eps) n n^T``):
+    ``sum w J^T J``, ``sum c g g^T`` with ``g = J^T r``, ``w g`` (M, 6), ``n`` (M, 3),
+    ``n^T (x_t - T x_s)`` (M,) and ``w J^T U^T n`` (M, 6) (Registration.solution_terms)."""
+    return _kernels.solution_sums(_f8(T), _f8(source), _f8(target), _f8(Ut), _f8(terms.jacobians),
+                                  _f8(terms.residuals), _f8(w), _f8(c), _f8(cov_target),
+                                  _rows(target_rows))
+
+
 def tangential_squares(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
                        target: np.ndarray, target_rows: np.ndarray, cov_target: np.ndarray,
                        epsilon: float) -> np.ndarray:

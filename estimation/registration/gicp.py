@@ -56,6 +56,7 @@ from .factors import (
     mahalanobis,
     normal_equations,
     robust_factors,
+    solution_sums,
     solve_weighted,
     tangential_squares,
     whitening_rows,
@@ -1600,25 +1601,17 @@ class Registration:
         Ut = self._whitening(corr, T[:3, :3])
         terms = gicp_terms(T, src, tgt, Ut)
         w = self._weights(terms.mahalanobis, corr.weights)
-        Jflat = (terms.jacobians * np.sqrt(w)[:, None, None]).reshape(-1, 6)
-        H = Jflat.T @ Jflat
-        g = (np.swapaxes(terms.jacobians, 1, 2) @ terms.residuals[:, :, None])[:, :, 0]
         # the exact Hessian of the robust cost (with the rho'' term, which IRLS drops)
         c = self._curvature(terms.mahalanobis, corr.weights)
-        A = H + (g * c[:, None]).T @ g
+        # (one pass over the pairs: the numpy products' (M, 3, 6) temporaries took 0.4 s of a
+        # raw half-room's 3.4 s; the target covariance I - (1 - epsilon) n n^T gives the normal)
+        H, curvature, scores, normals, rn, sens = solution_sums(
+            T, src, tgt, Ut, terms, w, c, _rows_of(self.target_cov, corr.target_idx),
+            corr.target_idx)
+        A = H + curvature
         if np.linalg.eigvalsh(A).min() <= 1e-9 * np.abs(np.linalg.eigvalsh(H)).max():
             A = H  # too many residuals beyond the kernel's inflection: fall back to IRLS
-        # the target covariance is I - (1 - epsilon) n n^T: its normal is the column of
-        # (I - C) with the largest diagonal, normalised
-        D = np.eye(3) - self.target_cov[corr.target_idx]
-        col = np.argmax(np.einsum("mii->mi", D), axis=1)
-        normals = D[np.arange(len(D)), :, col]
-        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-        r = tgt - transform_points(T, src)
-        rn = np.einsum("mi,mi->m", normals, r)
-        Un = np.einsum("mij,mj->mi", Ut, normals)
-        sens = w[:, None] * np.einsum("mij,mi->mj", terms.jacobians, Un)
-        return SolutionTerms(corr, src, tgt, w, H, A, w[:, None] * g, normals, rn, sens,
+        return SolutionTerms(corr, src, tgt, w, H, A, scores, normals, rn, sens,
                              terms.jacobians, Ut)
 
     def _finish(self, T, d_max, converged, reason, iterations, cost_log, start):
