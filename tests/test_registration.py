@@ -429,6 +429,37 @@ def test_solution_sums_equal_the_numpy_products(rng):
                                **close)
 
 
+@pytest.mark.parametrize("size", [0.05, 0.4, 1e-4])
+def test_cluster_sums_equal_a_grouping_by_block(rng, size):
+    """Values summed per cubic block: the table over the blocks' box (0.4 m blocks over a
+    2 m cloud) and the sort where the box has more blocks than four per point (0.05 and
+    1e-4 m), against a plain grouping of the blocks' keys."""
+    from estimation.registration.gicp import cluster_sums
+
+    points = rng.uniform(-1, 1, (5000, 3))
+    values = rng.normal(size=(5000, 6))
+    summed = cluster_sums(points, values, size)
+    keys = np.floor(points / size).astype(np.int64)
+    unique, group = np.unique(keys, axis=0, return_inverse=True)
+    ref = np.zeros((len(unique), 6))
+    np.add.at(ref, group.reshape(-1), values)
+    assert summed.shape == ref.shape
+    np.testing.assert_allclose(summed, ref, rtol=1e-12, atol=1e-12)
+
+
+def test_shift_sensitivity_is_w_jt_ut(rng):
+    from estimation.registration.gicp import SolutionTerms
+
+    m = 50
+    J, Ut = rng.normal(size=(m, 3, 6)), rng.normal(size=(m, 3, 3))
+    w, weight = rng.uniform(0, 1, m), rng.uniform(0, 2, m)
+    sol = SolutionTerms(None, None, None, w, None, None, None, None, None, None, J, Ut)
+    ref = w[:, None, None] * (np.swapaxes(J, 1, 2) @ Ut)
+    np.testing.assert_allclose(sol.shift_sensitivity(), ref, rtol=1e-13)
+    np.testing.assert_allclose(sol.shift_sensitivity(weight), ref * weight[:, None, None],
+                               rtol=1e-13)
+
+
 def test_a_step_in_degenerate_geometry_leaves_the_free_direction_alone():
     # collinear pairs: rotation about the line is free; GTSAM finds the system indeterminate,
     # the damped step must not move along it (and must not raise)

@@ -297,6 +297,47 @@ def solution_sums(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.
 
 
 @numba.njit(cache=True)
+def shift_sensitivities(J: np.ndarray, Ut: np.ndarray, w: np.ndarray,
+                        weight: np.ndarray) -> np.ndarray:
+    """Return (M, 6, 3) (w_k J_k^T U_k^T) weight_k (SolutionTerms.shift_sensitivity)."""
+    m = J.shape[0]
+    out = np.empty((m, 6, 3))
+    for k in range(m):
+        for i in range(6):
+            for j in range(3):
+                out[k, i, j] = (w[k] * (J[k, 0, i] * Ut[k, 0, j] + J[k, 1, i] * Ut[k, 1, j]
+                                        + J[k, 2, i] * Ut[k, 2, j])) * weight[k]
+    return out
+
+
+@numba.njit(cache=True)
+def grouped_sums(keys: np.ndarray, lo: np.ndarray, span: np.ndarray,
+                 values: np.ndarray) -> np.ndarray:
+    """Return ``values`` (M, d) summed over the rows of equal (M, 3) int64 ``keys`` (each
+    within ``lo`` + [0, ``span``)), one row per distinct key in the keys' lexicographic
+    order (as ``np.unique``'s groups), each group's rows added in their order (as
+    ``np.bincount``): a table over the keys' box, no sort."""
+    m, d = values.shape
+    table = np.full(span[0] * span[1] * span[2], -1, np.int64)
+    packed = np.empty(m, np.int64)
+    for k in range(m):
+        p = ((keys[k, 0] - lo[0]) * span[1] + keys[k, 1] - lo[1]) * span[2] + keys[k, 2] - lo[2]
+        packed[k] = p
+        table[p] = 0
+    groups = 0
+    for i in range(table.shape[0]):
+        if table[i] == 0:
+            table[i] = groups
+            groups += 1
+    out = np.zeros((groups, d))
+    for k in range(m):
+        row = table[packed[k]]
+        for j in range(d):
+            out[row, j] += values[k, j]
+    return out
+
+
+@numba.njit(cache=True)
 def gicp_mahalanobis(T: np.ndarray, source: np.ndarray, source_rows: np.ndarray,
                      target: np.ndarray, target_rows: np.ndarray, Ut: np.ndarray) -> np.ndarray:
     """Return (M,) e of :func:`gicp_terms` (the same operations) of the pairs
