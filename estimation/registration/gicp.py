@@ -762,9 +762,10 @@ PREFETCH_ROWS = 256
 
 
 def _reverse_executor():
-    """The second thread: the reverse direction of symmetric registrations, and what is
+    """The second thread: the reverse direction of symmetric registrations, what is
     prepared beside the iterations (the source's tree, the final stage's caches and
-    covariances, prefetched source covariances)."""
+    covariances, prefetched source covariances), and parts of the covariance beside the
+    others (half of the re-matched bread's poses, a centroid map's model terms: _Beside)."""
     global _REVERSE_EXECUTOR
     if _REVERSE_EXECUTOR is None:
         from concurrent.futures import ThreadPoolExecutor
@@ -1895,6 +1896,8 @@ class Registration:
         the neighbour caches, the E-step's sigma); no prefetching from it."""
         twin = copy.copy(self)
         twin._prefetching = False
+        # (what this registration prepared on the second thread stays its own)
+        twin._forward_cache = twin._reverse_cache = twin._nearest = None
         if self._cache is not None:
             twin._cache = self._cache.copy()
         if self._class_cache_owner is self._cache and self._cache is not None:
