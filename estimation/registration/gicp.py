@@ -984,9 +984,9 @@ class Registration:
         if self.surface_radius is None:
             return self.source[corr.source_idx], self.target[corr.target_idx]
         target = self._target_stats.means(corr.target_idx)
-        cov = self.source_cov
-        if isinstance(cov, LazyCovariances) and cov.radius is not None:
-            return cov.means(corr.source_idx), target
+        lazy = self._source_means
+        if lazy is not None:
+            return lazy.means(corr.source_idx), target
         if self._source_pos is None:  # covariances were given: the means need a query
             self._source_pos = local_means(self.source, cKDTree(self.source),
                                            self._means_radius, self.config.surface_min_points)
@@ -998,10 +998,15 @@ class Registration:
         if self.surface_radius is None:
             return self.source, self.target
         _ = self.matched_points(corr)  # fills the source means and the target's rows
+        lazy = self._source_means
+        return (self._source_pos if lazy is None else lazy.mean_values,
+                self._target_stats.mean_values)
+
+    @property
+    def _source_means(self) -> LazyCovariances | None:
+        """The source's per-row covariances where they carry its local means (not given)."""
         cov = self.source_cov
-        if isinstance(cov, LazyCovariances) and cov.radius is not None:
-            return cov.mean_values, self._target_stats.mean_values
-        return self._source_pos, self._target_stats.mean_values
+        return cov if isinstance(cov, LazyCovariances) and cov.radius is not None else None
 
     @property
     def surface_radius(self) -> float | None:
