@@ -187,3 +187,31 @@ def test_a_source_inside_a_centroid_map_gets_the_same_result_with_its_second_thr
     np.testing.assert_array_equal(alone.covariance, free.covariance)
     for name, value in vars(free.diagnostic).items():
         np.testing.assert_array_equal(getattr(alone.diagnostic, name), value, err_msg=name)
+
+
+def test_a_split_whitening_equals_the_whole(monkeypatch):
+    """From SPLIT_PAIRS pairs half of an iteration's whitening runs on the second thread
+    (into one array): the same numbers as one call, with that thread free or busy, and
+    through the kernel compiled ahead of time where there is one."""
+    from estimation import aot
+    from estimation.registration.factors import whitening_rows
+
+    source, _, target, _, T_gt = make_pair(16, 1500, 0.01)
+    reg = Registration(source, target, RegistrationConfig())
+    corr = reg.correspondences(T_gt, 0.3)
+    R = T_gt[:3, :3]
+    whole = whitening_rows(reg.target_cov.filled(corr.target_idx), corr.target_idx,
+                           reg.source_cov.filled(corr.source_idx), corr.source_idx, R)
+    monkeypatch.setattr(gicp, "SPLIT_PAIRS", 100)
+    ks = aot.kernels("estimation.registration._kernels")
+    before = ks.jit_calls
+    np.testing.assert_array_equal(reg._whitening(corr, R), whole)
+    if ks.compiled is not None:
+        assert ks.jit_calls == before
+    release = threading.Event()
+    busy = gicp._reverse_executor().submit(release.wait, 30)
+    try:
+        np.testing.assert_array_equal(reg._whitening(corr, R), whole)
+    finally:
+        release.set()
+        busy.result()

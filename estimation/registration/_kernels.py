@@ -189,6 +189,17 @@ def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: 
 
 
 @numba.njit(cache=True)
+def whitening_rows_into(out: np.ndarray, cov_target: np.ndarray, target_rows: np.ndarray,
+                        cov_source: np.ndarray, source_rows: np.ndarray, R: np.ndarray) -> None:
+    """:func:`whitening_rows` written into the zeroed (M, 3, 3) ``out`` (a part of a larger
+    array: two threads fill one array)."""
+    C = np.empty((3, 3))
+    RS = np.empty((3, 3))
+    for m in range(target_rows.shape[0]):
+        _whiten_into(out[m], cov_target[target_rows[m]], cov_source[source_rows[m]], R, C, RS)
+
+
+@numba.njit(cache=True)
 def _whitened_residual(T: np.ndarray, xs: np.ndarray, xt: np.ndarray, Um: np.ndarray,
                        v: np.ndarray) -> float:
     """Write ``U^T r`` (``r = x_t - R x_s - t``) of one pair into ``v`` (3,); return its

@@ -85,6 +85,14 @@ def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: 
                                    _rows(source_rows), _f8(R))
 
 
+def whitening_rows_into(out: np.ndarray, cov_target: np.ndarray, target_rows: np.ndarray,
+                        cov_source: np.ndarray, source_rows: np.ndarray, R: np.ndarray) -> None:
+    """:func:`whitening_rows` written into ``out``, a zeroed C-contiguous (M, 3, 3) array
+    (or a range of rows of one)."""
+    _kernels.whitening_rows_into(out, _f8(cov_target), _rows(target_rows), _f8(cov_source),
+                                 _rows(source_rows), _f8(R))
+
+
 def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
                jacobians: bool = True, sqrt_weights: np.ndarray | None = None) -> GicpTerms:
     """Return whitened residuals (and Jacobians) of eq. (3) at the 4x4 ``T``.

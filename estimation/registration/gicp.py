@@ -61,6 +61,7 @@ from .factors import (
     solve_weighted,
     tangential_squares,
     whitening_rows,
+    whitening_rows_into,
 )
 
 # compiled ahead of time by `make setup` (estimation/aot.py), numba's JIT otherwise
@@ -756,6 +757,9 @@ REASSOCIATION_ROWS = 30000
 # query. In-process A/B against 0.1 (bit-identical): ICL office 0.95x (4 classes), 1.00x (24),
 # TUM room 0.99x (small offsets) and 0.98x (wide)
 CLASS_CACHE_STEP = 1e-2
+# pairs from which an iteration's whitening is split between the two threads
+# (Registration._whitening)
+SPLIT_PAIRS = 20000
 # matched source rows whose covariances are computed on the second thread when at least this
 # many are missing (Registration._prefetch_source); fewer are not worth a hand-over
 PREFETCH_ROWS = 256
@@ -1324,8 +1328,17 @@ class Registration:
     def _whitening(self, corr: Correspondences, R: np.ndarray) -> np.ndarray:
         """Return the (M, 3, 3) whitening of ``corr`` at rotation ``R`` (:func:`whitening`),
         read from the covariance arrays by row (no gathered copies)."""
-        return whitening_rows(_rows_of(self.target_cov, corr.target_idx), corr.target_idx,
-                              _rows_of(self.source_cov, corr.source_idx), corr.source_idx, R)
+        cov_t = _rows_of(self.target_cov, corr.target_idx)
+        cov_s = _rows_of(self.source_cov, corr.source_idx)
+        if len(corr) < SPLIT_PAIRS:
+            return whitening_rows(cov_t, corr.target_idx, cov_s, corr.source_idx, R)
+        # many pairs: half of them on the second thread (the same rows either way)
+        out, h = np.zeros((len(corr), 3, 3)), len(corr) // 2
+        rest = _Beside(whitening_rows_into, out[h:], cov_t, corr.target_idx[h:], cov_s,
+                       corr.source_idx[h:], R)
+        whitening_rows_into(out[:h], cov_t, corr.target_idx[:h], cov_s, corr.source_idx[:h], R)
+        rest.result()
+        return out
 
     def _gated(self, T: np.ndarray, d_max: float, corr: Correspondences) -> Correspondences:
         """Return ``corr`` with the pairs beyond the target's surface down-weighted or dropped
