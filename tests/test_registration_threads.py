@@ -215,3 +215,22 @@ def test_a_split_whitening_equals_the_whole(monkeypatch):
     finally:
         release.set()
         busy.result()
+
+
+def test_the_second_thread_prefetches_before_it_searches_the_maps_grid(monkeypatch):
+    """The first iteration's source rows are prefetched before the map's grid is searched
+    (needed only at convergence), once per run, and never for the reverse direction."""
+    source, _, target, _, T_gt = make_pair(17, 1500, 0.01)
+    executor = gicp._reverse_executor()
+    submitted, plain = [], executor.submit
+
+    def submit(fn, *args, **kwargs):
+        name = getattr(args[0] if fn is gicp._beside else fn, "__name__", "")
+        submitted.append(name)
+        return plain(fn, *args, **kwargs)
+
+    monkeypatch.setattr(executor, "submit", submit)
+    result = Registration(source, target, RegistrationConfig()).run(T_gt)
+    assert result.converged
+    assert submitted.count("_partial_cells_grid") == 1
+    assert submitted.index("prefetch") < submitted.index("_partial_cells_grid")

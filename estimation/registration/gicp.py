@@ -1512,7 +1512,6 @@ class Registration:
         if self.semantic and len(self.semantic_index.trees) == 0:
             return self._failed(T, "target has no labelled points", start)
         self._prepare_source()
-        self._search_partial_grid()
         key = gtsam.symbol("t", 0)
         d_final = cfg.max_correspondence_distance
         d = max(cfg.initial_correspondence_distance or d_final, d_final)
@@ -1554,6 +1553,11 @@ class Registration:
                 if rescue and final_iterations > cfg.stage_iterations:
                     rescue, wide, T_prev = False, True, None
             corr = self.correspondences(T, d, coarse if annealing else None, step)
+            if iterations == 1:
+                # after the first prefetch: the second thread computes the source rows the
+                # first whitening needs before it searches the map's grid (needed at
+                # convergence; KITTI at 0.5 m: this thread computed them meanwhile, 5.6 ms)
+                self._search_partial_grid()
             if len(corr) < cfg.min_inliers:
                 return self._failed(T, f"only {len(corr)} correspondences within "
                                        f"d_max={d:g} m (need {cfg.min_inliers})",
