@@ -175,20 +175,6 @@ def whitening(cov_target: np.ndarray, cov_source: np.ndarray, R: np.ndarray) -> 
 
 
 @numba.njit(cache=True)
-def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: np.ndarray,
-                   source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
-    """:func:`whitening` of the pairs (cov_target[target_rows[m]], cov_source[source_rows[m]])
-    without gathering them first."""
-    n = target_rows.shape[0]
-    out = np.zeros((n, 3, 3))
-    C = np.empty((3, 3))
-    RS = np.empty((3, 3))
-    for m in range(n):
-        _whiten_into(out[m], cov_target[target_rows[m]], cov_source[source_rows[m]], R, C, RS)
-    return out
-
-
-@numba.njit(cache=True)
 def whitening_rows_into(out: np.ndarray, cov_target: np.ndarray, target_rows: np.ndarray,
                         cov_source: np.ndarray, source_rows: np.ndarray, R: np.ndarray) -> None:
     """:func:`whitening_rows` written into the zeroed (M, 3, 3) ``out`` (a part of a larger
@@ -197,6 +183,16 @@ def whitening_rows_into(out: np.ndarray, cov_target: np.ndarray, target_rows: np
     RS = np.empty((3, 3))
     for m in range(target_rows.shape[0]):
         _whiten_into(out[m], cov_target[target_rows[m]], cov_source[source_rows[m]], R, C, RS)
+
+
+@numba.njit(cache=True)
+def whitening_rows(cov_target: np.ndarray, target_rows: np.ndarray, cov_source: np.ndarray,
+                   source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """:func:`whitening` of the pairs (cov_target[target_rows[m]], cov_source[source_rows[m]])
+    without gathering them first."""
+    out = np.zeros((target_rows.shape[0], 3, 3))
+    whitening_rows_into(out, cov_target, target_rows, cov_source, source_rows, R)
+    return out
 
 
 @numba.njit(cache=True)

@@ -110,6 +110,21 @@ def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.nda
     return GicpTerms(rw, J if jacobians else None, e)
 
 
+def shift_sensitivities(jacobians: np.ndarray, Ut: np.ndarray, w: np.ndarray,
+                        weight: np.ndarray) -> np.ndarray:
+    """Return (M, 6, 3) ``(w_k J_k^T U_k^T) weight_k`` in one pass (numpy's batched matmul
+    took 47 ms for a raw half-room's 435k pairs)."""
+    return _kernels.shift_sensitivities(_f8(jacobians), _f8(Ut), _f8(w), _f8(weight))
+
+
+def grouped_sums(keys: np.ndarray, lo: np.ndarray, span: np.ndarray,
+                 values: np.ndarray) -> np.ndarray:
+    """Return ``values`` (M, d) summed over the rows of equal (M, 3) int64 ``keys`` within
+    ``lo + [0, span)``, one row per distinct key in ``np.unique``'s order, in one pass over a
+    table of the keys' box."""
+    return _kernels.grouped_sums(_rows(keys), _rows(lo), _rows(span), _f8(values))
+
+
 def solution_sums(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
                   terms: GicpTerms, w: np.ndarray, c: np.ndarray, cov_target: np.ndarray,
                   target_rows: np.ndarray) -> tuple[np.ndarray, ...]:

@@ -25,7 +25,6 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr  # (loaded with scipy.spatial already)
 
-from ..aot import kernels
 from ..errors import EstimationError
 from .correspondences import (
     Correspondences,
@@ -54,18 +53,17 @@ from .factors import (
     cauchy_weight,
     gauss_newton_step,
     gicp_terms,
+    grouped_sums,
     mahalanobis,
     normal_equations,
     robust_factors,
+    shift_sensitivities,
     solution_sums,
     solve_weighted,
     tangential_squares,
     whitening_rows,
     whitening_rows_into,
 )
-
-# compiled ahead of time by `make setup` (estimation/aot.py), numba's JIT otherwise
-_kernels = kernels("estimation.registration._kernels")
 
 # Cauchy tuning constant for 95 % asymptotic efficiency at Gaussian residuals (Holland and
 # Welsch 1977), in units of the residuals' standard deviation
@@ -600,9 +598,7 @@ class SolutionTerms:
         its target point (along x, y, z); times ``weight`` (M,) where given."""
         # (one pass: numpy's batched matmul took 47 ms for a raw half-room's 435k pairs)
         weight = np.ones(len(self.w)) if weight is None else weight
-        f8 = functools.partial(np.ascontiguousarray, dtype=float)
-        return _kernels.shift_sensitivities(f8(self.jacobians), f8(self.whitening), f8(self.w),
-                                            f8(weight))
+        return shift_sensitivities(self.jacobians, self.whitening, self.w, weight)
 
 
 def _as_points(points: np.ndarray, what: str) -> np.ndarray:
@@ -2569,7 +2565,7 @@ def cluster_sums(points: np.ndarray, values: np.ndarray, size: float) -> np.ndar
     if np.prod(span.astype(float)) <= 4 * len(keys) + 1024:
         # one pass over a table of the blocks' box: the same sums, row for row, as the
         # grouping and bincount below (a raw half-room's 435k pairs: 35 -> 8 ms a call)
-        return _kernels.grouped_sums(keys, lo, span, np.ascontiguousarray(values, dtype=float))
+        return grouped_sums(keys, lo, span, values)
     block = _row_groups(keys)
     n_blocks, d = int(block.max()) + 1, values.shape[1]
     # one bincount over (block, column) pairs: several times faster than np.add.at
