@@ -100,7 +100,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.registration import D_FINAL, OFFSETS, register_ours, run_open3d  # noqa: E402
+from benchmarks.registration import D_FINAL, register_ours, run_open3d  # noqa: E402
+from benchmarks.registration import OFFSETS as SIMULATOR_OFFSETS  # noqa: E402
 from estimation.covariance import chi2_bounds, nees, nees_about_common  # noqa: E402
 from estimation.fileio import atomic_write  # noqa: E402
 from estimation.registration import pose_error  # noqa: E402
@@ -117,6 +118,10 @@ SCAN_RANGE = 8.0  # m: the laser scan's points kept (beyond, its spacing is seve
 N_GEOMETRIC = 4  # the rooms' geometric classes (three axes and "other")
 N_CLASSES = N_GEOMETRIC  # the classes of the run (--classes)
 PITCH = 0.03
+# m, deg, initial d_max: the simulator benchmark's two, and "near", a start at the final d_max
+# (no annealing: what RegistrationConfig's defaults and `octofactor register` without
+# --initial-corr do; Open3D: its two calls both at the final d_max)
+OFFSETS = {**SIMULATOR_OFFSETS, "near": (0.05, 2.0, D_FINAL)}
 METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "gicp-se3-midpoint",
            "open3d-gicp")
 PART_OVERLAP = 1.0  # m: width of the slab two parts share (setting "part")
@@ -432,7 +437,9 @@ def main(argv=None) -> int:
                         help="comma-separated: tum,icl,scan (scan: OctoMap's laser scan)")
     parser.add_argument("--maps", default="centroids,centres",
                         help="comma-separated: centroids,centres")
-    parser.add_argument("--offsets", default="small", help="comma-separated: small,wide")
+    parser.add_argument("--offsets", default="small",
+                        help="comma-separated: small,wide,near (near: 5 cm / 2 deg, "
+                        "started at the final d_max)")
     parser.add_argument("--trials", type=int, default=30)
     parser.add_argument("--step", type=int, default=5, help="every STEP-th frame makes the room")
     parser.add_argument("--methods", default=",".join(METHODS))

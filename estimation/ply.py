@@ -166,6 +166,67 @@ def check_ply(path: str | os.PathLike) -> PlyHeader:
     return header
 
 
+#: numpy type of each PLY scalar type (byte order added by the reader)
+_NUMPY_TYPES = {
+    "char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1",
+    "short": "i2", "ushort": "u2", "int16": "i2", "uint16": "u2",
+    "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def read_vertex_property(path: str | os.PathLike, header: PlyHeader, name: str):
+    """Return the vertex property ``name`` of a checked PLY (:func:`check_ply`) as a numpy
+    array of its own type.
+
+    Open3D's reader skips the classic type names ``char``, ``short``, ``ushort`` and
+    ``uint`` (it keeps ``uint16``): ScanNet's ``ushort label``, for one. So a column is
+    read here, from the vertex rows' bytes (binary) or lines (ASCII). The elements before
+    the vertices must have fixed-size rows in a binary file (their lists cannot be skipped
+    without reading them).
+    """
+    import numpy as np
+
+    index = next(i for i, e in enumerate(header.elements) if e.name == "vertex")
+    vertex = header.elements[index]
+    column = [p for p, _ in vertex.properties].index(name)
+    if header.format == "ascii":
+        lines_before = sum(e.count for e in header.elements[:index])
+        with open(path, "rb") as handle:
+            handle.seek(header.data_start)
+            rows = (line for line in handle if line.strip())
+            for _ in range(lines_before):
+                next(rows)
+            kind = _NUMPY_TYPES[vertex.properties[column][1]]
+            values = np.empty(vertex.count, dtype=kind)
+            for row, line in enumerate(rows):
+                if row == vertex.count:
+                    break
+                fields = line.split()
+                if len(fields) != len(vertex.properties):
+                    raise FormatError(path, f"vertex {row} has {len(fields)} values, the "
+                                      f"header names {len(vertex.properties)}")
+                try:
+                    values[row] = float(fields[column]) if kind[0] == "f" else int(fields[column])
+                except (ValueError, OverflowError):
+                    raise FormatError(path, f"vertex {row}: {name} "
+                                      f"{fields[column][:30].decode(errors='replace')!r} is "
+                                      f"not a {vertex.properties[column][1]}") from None
+        return values
+    before = 0
+    for element in header.elements[:index]:
+        if element.fixed_row_bytes is None:
+            raise FormatError(path, f"element {element.name!r} before the vertices has list "
+                              f"properties: cannot locate the vertex property {name!r}")
+        before += element.count * element.fixed_row_bytes
+    order = "<" if header.format == "binary_little_endian" else ">"
+    row = np.dtype([(f"p{i}", order + _NUMPY_TYPES[kind])
+                    for i, (_, kind) in enumerate(vertex.properties)])
+    rows = np.memmap(path, dtype=row, mode="r", offset=header.data_start + before,
+                     shape=(vertex.count,)) if vertex.count else np.zeros(0, row)
+    return np.array(rows[f"p{column}"]).astype(rows.dtype[column].newbyteorder("="))
+
+
 def _counts(header: PlyHeader) -> str:
     return ", ".join(f"{e.count} {e.name}" for e in header.elements) or "no elements"
 

@@ -4,8 +4,13 @@ Point Cloud"), their PLY files, and how to make them from RGB-D frames or a sema
 PLY layout (read and written through ``open3d.t``): ``x y z`` float32, optional
 ``red green blue`` float32 in [0, 1], ``label`` int32 (argmax class) and ``prob_0 ..
 prob_{C-1}`` float32. Open3D's PLY writer rejects int64/uint32 attributes and its PCD
-writer drops multi-column attributes, hence one float32 column per class. A PLY with only
-``x y z label`` loads too (one-hot probabilities).
+writer drops multi-column attributes, hence one float32 column per class.
+
+Other tools' labelled clouds load too: a PLY with an integer label column (any PLY integer
+type, e.g. ScanNet's ``ushort label``, or a float column holding whole numbers, e.g.
+CloudCompare's ``scalar_label``; the names in :data:`LABEL_PROPERTIES`) gets one-hot
+probabilities over the label values it holds (``label_ids``), and 8-bit colours are scaled to
+[0, 1]. Two such clouds are put on one class list by :func:`common_classes`.
 """
 from __future__ import annotations
 
@@ -23,6 +28,10 @@ from perception.errors import PerceptionError
 #: most classes a semantic cloud may have (labels in a PLY file are bounded by it before the
 #: one-hot probabilities are allocated)
 MAX_CLASSES = 1024
+#: vertex properties read as the class label of a label-only PLY, the first one present
+#: (names compared without case): ours and ScanNet's, then names other tools give the column
+LABEL_PROPERTIES = ("label", "class", "semantic", "semantic_label", "class_id", "label_id",
+                    "category_id", "scalar_label")
 
 Segmenter = Callable[[np.ndarray], np.ndarray]  # (H, W, 3) uint8 RGB -> (H, W, C) probabilities
 
@@ -37,13 +46,16 @@ class SemanticCloud:
     probs : (N, C) float32 class probabilities (rows sum to 1)
     colors : (N, 3) float32 RGB in [0, 1], or None
     class_names : tuple of C names, or None
-    labels : (N,) int32 argmax class (derived)
+    label_ids : tuple of C label values, or None: the label each probability column stands
+        for (a label-only PLY's values; None: the column index)
+    labels : (N,) argmax class, as its label value where ``label_ids`` is given (derived)
     """
 
     points: np.ndarray
     probs: np.ndarray
     colors: np.ndarray | None = None
     class_names: tuple[str, ...] | None = None
+    label_ids: tuple[int, ...] | None = None
     _cache: dict = field(default_factory=dict, compare=False, repr=False)
 
     def __post_init__(self):
@@ -76,6 +88,12 @@ class SemanticCloud:
             if len(names) != probs.shape[1]:
                 raise PerceptionError(f"{probs.shape[1]} classes but {len(names)} class names")
             object.__setattr__(self, "class_names", names)
+        if self.label_ids is not None:
+            ids = tuple(int(i) for i in self.label_ids)
+            if len(ids) != probs.shape[1] or len(set(ids)) != len(ids):
+                raise PerceptionError(f"{probs.shape[1]} classes need as many distinct label "
+                                      f"ids, got {len(ids)} ({len(set(ids))} distinct)")
+            object.__setattr__(self, "label_ids", ids)
 
     def __len__(self) -> int:
         return len(self.points)
@@ -86,8 +104,14 @@ class SemanticCloud:
 
     @property
     def labels(self) -> np.ndarray:
-        """(N,) int32 argmax class of every point."""
-        return self.probs.argmax(axis=1).astype(np.int32)
+        """(N,) int32 argmax class of every point (its label value where ``label_ids`` is
+        given; int64 if a value does not fit in int32)."""
+        best = self.probs.argmax(axis=1)
+        if self.label_ids is None:
+            return best.astype(np.int32)
+        ids = np.asarray(self.label_ids, dtype=np.int64)
+        fits = ids.min() >= np.iinfo(np.int32).min and ids.max() <= np.iinfo(np.int32).max
+        return ids[best].astype(np.int32 if fits else np.int64)
 
     # -- construction -------------------------------------------------------------------------
     @classmethod
@@ -186,12 +210,13 @@ class SemanticCloud:
         """Return the cloud with points mapped by the 4x4 ``T`` (T_new_old)."""
         T = np.asarray(T, dtype=float)
         return SemanticCloud(self.points @ T[:3, :3].T + T[:3, 3], self.probs, self.colors,
-                             self.class_names)
+                             self.class_names, self.label_ids)
 
     def select(self, rows: np.ndarray) -> SemanticCloud:
         """Return the sub-cloud of the given row indices or boolean mask."""
         colors = None if self.colors is None else self.colors[rows]
-        return SemanticCloud(self.points[rows], self.probs[rows], colors, self.class_names)
+        return SemanticCloud(self.points[rows], self.probs[rows], colors, self.class_names,
+                             self.label_ids)
 
     def subsample(self, n: int, rng: np.random.Generator) -> SemanticCloud:
         """Return ``n`` points drawn without replacement (all points when n >= N)."""
@@ -223,8 +248,18 @@ class SemanticCloud:
         pcd.point.positions = o3d.core.Tensor(self.points.astype(np.float32))
         if self.colors is not None:
             pcd.point.colors = o3d.core.Tensor(self.colors.astype(np.float32))
-        pcd.point.label = o3d.core.Tensor(self.labels.reshape(-1, 1))
-        for c in range(self.n_classes):
+        labels = self.labels
+        if labels.dtype != np.int32:
+            raise PerceptionError(f"{path}: label ids beyond int32 cannot be written (Open3D's "
+                                  "PLY writer takes int32 labels)")
+        pcd.point.label = o3d.core.Tensor(labels.reshape(-1, 1))
+        # a label-only cloud's labels are its label values, written as the label column alone
+        # (prob_i columns would number the classes anew); other clouds write prob_i too
+        one_hot = self.label_ids is not None and np.all(self.probs.max(axis=1) == 1.0)
+        if self.label_ids is not None and not one_hot:
+            raise PerceptionError(f"{path}: class probabilities over label ids "
+                                  f"{self.label_ids[:4]}... cannot be written as prob_i columns")
+        for c in range(0 if one_hot else self.n_classes):
             pcd.point[f"prob_{c}"] = o3d.core.Tensor(
                 np.ascontiguousarray(self.probs[:, c:c + 1]))
         path = Path(path)
@@ -241,8 +276,10 @@ class SemanticCloud:
     def read_ply(cls, path: str | os.PathLike, n_classes: int | None = None) -> SemanticCloud:
         """Return the cloud stored in a PLY file (see the module docstring for the layout).
 
-        ``n_classes`` widens one-hot probabilities of a label-only file (default: max label
-        + 1). Raises :class:`FormatError` for files that are not semantic PLYs.
+        A label-only file (see the module docstring) gets one column per label value it
+        holds (``label_ids``); ``n_classes`` instead numbers its labels as the columns
+        0..n_classes-1 (ids None, as a probability file's). Raises :class:`FormatError` for
+        files that are not semantic PLYs.
         """
         from estimation.ply import check_ply, read_ply_quietly
 
@@ -260,7 +297,13 @@ class SemanticCloud:
         if "positions" not in attrs or pcd.point.positions.shape[0] == 0:
             raise FormatError(path, "PLY has no vertices with x, y, z")
         points = pcd.point.positions.numpy().astype(np.float64)
-        colors = pcd.point.colors.numpy().astype(np.float32) if "colors" in attrs else None
+        colors = None
+        if "colors" in attrs:
+            colors = pcd.point.colors.numpy()
+            # 8-bit (and 16-bit) colour channels as [0, 1], as ours are written
+            scale = np.iinfo(colors.dtype).max if colors.dtype.kind in "iu" else 1.0
+            colors = colors.astype(np.float32) / np.float32(scale)
+        label_ids = None
         prob_names = sorted((a for a in attrs if a.startswith("prob_")),
                             key=lambda a: int(a[5:]) if a[5:].isdigit() else -1)
         if prob_names:
@@ -275,22 +318,11 @@ class SemanticCloud:
             if not np.all(np.isfinite(probs)) or np.any(probs < 0) or \
                     np.any(probs.sum(axis=1) <= 0):
                 raise FormatError(path, "invalid class probabilities (negative, NaN or all zero)")
-        elif "label" in attrs:
-            labels = pcd.point.label.numpy().reshape(-1).astype(np.int64)
-            if labels.min() < 0:
-                raise FormatError(path, f"negative label {int(labels.min())} at vertex "
-                                  f"{int(np.argmin(labels))}")
-            if labels.max() >= MAX_CLASSES:
-                raise FormatError(path, f"label {int(labels.max())} at vertex "
-                                  f"{int(np.argmax(labels))} is beyond the {MAX_CLASSES}-class "
-                                  "limit")
-            c = int(labels.max()) + 1 if n_classes is None else int(n_classes)
-            if labels.max() >= c:
-                raise FormatError(path, f"label {int(labels.max())} >= n_classes {c}")
-            probs = np.zeros((len(labels), c), dtype=np.float32)
-            probs[np.arange(len(labels)), labels] = 1.0
+        elif (label_name := _label_property(header.vertex_properties)) is not None:
+            probs, label_ids = _one_hot_from_file(path, header, label_name, n_classes)
         else:
-            raise FormatError(path, "PLY has neither a 'label' nor 'prob_i' properties")
+            raise FormatError(path, "PLY has neither a label column (" +
+                              ", ".join(LABEL_PROPERTIES) + ") nor prob_i properties")
         names = None
         names_path = path.with_suffix(".classes.txt")
         if names_path.is_file():
@@ -300,9 +332,88 @@ class SemanticCloud:
                 raise FormatError(names_path, "class names are not UTF-8 text",
                                   offset=exc.start) from None
             lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
-            if len(lines) == probs.shape[1]:
+            if label_ids is not None and min(label_ids) >= 0 and max(label_ids) < len(lines):
+                names = tuple(lines[i] for i in label_ids)  # a name per label value
+            elif len(lines) == probs.shape[1]:
                 names = tuple(lines)
         try:
-            return cls(points, probs, colors, names)
+            return cls(points, probs, colors, names, label_ids)
         except PerceptionError as exc:
             raise FormatError(path, str(exc)) from None
+
+
+def _label_property(properties: tuple[str, ...]) -> str | None:
+    """Return the vertex property that holds the labels (:data:`LABEL_PROPERTIES`), or None."""
+    by_name = {name.lower(): name for name in properties}
+    return next((by_name[n] for n in LABEL_PROPERTIES if n in by_name), None)
+
+
+def _one_hot_from_file(path: Path, header, name: str, n_classes: int | None
+                       ) -> tuple[np.ndarray, tuple[int, ...] | None]:
+    """Return (one-hot probabilities, label ids or None) of the label column ``name``.
+
+    Without ``n_classes`` the columns are the label values the file holds, in increasing
+    order (``label_ids``): any integers, at most MAX_CLASSES distinct ones. With it, the
+    labels are the column indices 0..n_classes-1 (ids None), as a probability file's are.
+    """
+    from estimation.ply import read_vertex_property
+
+    raw = read_vertex_property(path, header, name)
+    if raw.dtype.kind == "f":
+        whole = np.isfinite(raw) & (raw == np.round(raw)) & (np.abs(raw) < 2.0 ** 53)
+        if not np.all(whole):
+            bad = int(np.argmin(whole))
+            raise FormatError(path, f"label column {name!r} holds {float(raw[bad])} at vertex "
+                              f"{bad}: labels must be whole numbers")
+    labels = raw.astype(np.int64)
+    if n_classes is not None:
+        c = int(n_classes)
+        if labels.min() < 0 or labels.max() >= c:
+            bad = int(np.argmin(labels) if labels.min() < 0 else np.argmax(labels))
+            raise FormatError(path, f"label {int(labels[bad])} at vertex {bad} is outside "
+                              f"0..n_classes-1 = 0..{c - 1}")
+        ids, column = None, labels
+    else:
+        values, column = np.unique(labels, return_inverse=True)
+        if len(values) > MAX_CLASSES:
+            raise FormatError(path, f"{len(values)} distinct labels: more than the "
+                              f"{MAX_CLASSES}-class limit")
+        ids = tuple(int(v) for v in values)
+        c = len(values)
+    probs = np.zeros((len(labels), c), dtype=np.float32)
+    probs[np.arange(len(labels)), column.reshape(-1)] = 1.0
+    return probs, ids
+
+
+def common_classes(a: SemanticCloud, b: SemanticCloud) -> tuple[SemanticCloud, SemanticCloud]:
+    """Return ``a`` and ``b`` with their probability columns on one class list.
+
+    Clouds read from label-only files carry the label values their columns stand for
+    (``label_ids``), and one half of a room may lack labels the other holds: both then get
+    the union of the two value lists (absent classes a zero column). A cloud without ids
+    numbers its classes 0..C-1; two such clouds must have the same C.
+    """
+    if a.label_ids is None and b.label_ids is None:
+        if a.n_classes != b.n_classes:
+            raise PerceptionError(f"one cloud has {a.n_classes} classes, the other "
+                                  f"{b.n_classes}: the same label set is needed")
+        return a, b
+    ids_a = a.label_ids if a.label_ids is not None else tuple(range(a.n_classes))
+    ids_b = b.label_ids if b.label_ids is not None else tuple(range(b.n_classes))
+    union = tuple(sorted(set(ids_a) | set(ids_b)))
+    for cloud, ids in ((a, ids_a), (b, ids_b)):
+        if cloud.label_ids is None and union != ids:
+            raise PerceptionError(f"a cloud with {cloud.n_classes} numbered classes cannot share "
+                                  f"a class list with label values {union[:6]}...")
+    if len(union) > MAX_CLASSES:
+        raise PerceptionError(f"{len(union)} distinct labels in the two clouds: more than the "
+                              f"{MAX_CLASSES}-class limit")
+
+    def widened(cloud: SemanticCloud, ids: tuple[int, ...]) -> SemanticCloud:
+        if ids == union:
+            return cloud
+        probs = np.zeros((len(cloud), len(union)), dtype=np.float32)
+        probs[:, np.searchsorted(union, ids)] = cloud.probs
+        return SemanticCloud(cloud.points, probs, cloud.colors, None, union)
+
+    return widened(a, ids_a), widened(b, ids_b)

@@ -110,9 +110,16 @@ def _register(args, source, target, flip=None) -> dict:
     from estimation.errors import OctofactorError
     from estimation.registration import Registration, pose_error, read_transform
 
-    if args.method == "semantic" and source.n_classes != target.n_classes:
-        raise OctofactorError(f"source has {source.n_classes} classes, target "
-                              f"{target.n_classes}: Semantic-ICP needs the same label set")
+    if args.method == "semantic" or getattr(args, "estimator", None):
+        from perception.errors import PerceptionError
+        from perception.semantic_cloud import common_classes
+
+        try:  # label files: one class list over the label values of both
+            source, target = common_classes(source, target)
+        except PerceptionError as exc:
+            if args.method == "semantic":
+                raise OctofactorError(f"source and target classes: {exc}: Semantic-ICP "
+                                      "needs one label set") from None
     config = registration_config(args)
     init = read_transform(args.init) if args.init else None
     semantic = args.method == "semantic"
