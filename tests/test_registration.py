@@ -785,3 +785,38 @@ def test_lazy_covariances_filled_from_two_threads_equal_the_full_computation(rng
     fresh = LazyCovariances(points, cKDTree(points), 12, 1e-3)
     fresh.prefetch(np.arange(3000), stop=stop)  # stopped before its first chunk
     assert not fresh.done.any()
+
+
+def test_a_start_at_the_final_distance_aligns_a_coarse_subset_first(monkeypatch):
+    """RegistrationConfig()'s start at the final d_max: the coarse subset is aligned there
+    first (COARSE_FIRST), so fewer iterations match every point, and the final stage, on
+    every point, converges to the fixed point it reaches without that stage."""
+    import estimation.registration.gicp as gicp
+
+    source, _, target, _, T_gt = make_pair(5, 9000)
+    init = T_gt @ gtsam.Pose3(gtsam.Rot3.Rodrigues(0.04, -0.02, 0.03),
+                              np.array([0.06, -0.04, 0.03])).matrix()
+    calls = []
+    query = gicp.Registration.correspondences
+
+    def counted(self, T, d, rows=None, step=None):
+        calls.append((self, len(self.source) if rows is None else len(rows)))
+        return query(self, T, d, rows, step)
+
+    monkeypatch.setattr(gicp.Registration, "correspondences", counted)
+    results, full = {}, {}
+    for coarse_first in (True, False):
+        monkeypatch.setattr(gicp, "COARSE_FIRST", coarse_first)
+        calls.clear()
+        registration = Registration(source, target, RegistrationConfig())
+        results[coarse_first] = registration.run(init)
+        assert results[coarse_first].converged
+        own = [n for who, n in calls if who is registration]  # not the reverse direction's
+        full[coarse_first] = own.count(len(source))
+        coarse = [n for n in own if n < len(source)]
+        # the coarse stage ran first, on about coarse_points rows
+        assert (len(coarse) >= 2 and own[:len(coarse)] == coarse) == coarse_first
+        assert all(2900 <= n <= 3100 for n in coarse)
+    assert full[True] < full[False]
+    step = gtsam.Pose3.Logmap(gtsam.Pose3(results[False].T).between(gtsam.Pose3(results[True].T)))
+    assert np.linalg.norm(step) < 3e-4  # within a few convergence tolerances (1e-4)

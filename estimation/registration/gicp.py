@@ -1559,7 +1559,10 @@ class Registration:
                 final_iterations += 1
                 if rescue and final_iterations > cfg.stage_iterations:
                     rescue, wide, T_prev = False, True, None
-            corr = self.correspondences(T, d, coarse if annealing else None, step)
+            # (the coarse first stage queries the tree: the final stage's neighbour cache, at
+            # the same d_max, is being prepared for every point on the second thread)
+            corr = self.correspondences(T, d, coarse if annealing else None,
+                                        np.inf if coarse_first else step)
             if iterations == 1:
                 # after the first prefetch: the second thread computes the source rows the
                 # first whitening needs before it searches the map's grid (needed at
@@ -1598,7 +1601,10 @@ class Registration:
             if annealing:
                 if not prepared_forward and step < PREPARE_FORWARD_STEP:
                     prepared_forward = True
-                    self._prepare_forward(T_new, d_final, self._motion(T, T_new))
+                    # (after a coarse first stage's short steps the cache would outlast
+                    # them, and this thread would wait for the other to query it whole)
+                    self._prepare_forward(T_new, d_final,
+                                          np.inf if coarse_first else self._motion(T, T_new))
                 if (cfg.anneal == "iteration" or step < cfg.tolerance or two_cycle
                         or stage_iterations >= cfg.stage_iterations):
                     d = max(d * cfg.decay, d_final)
