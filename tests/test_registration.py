@@ -799,10 +799,10 @@ def test_a_start_at_the_final_distance_aligns_a_coarse_subset_first(monkeypatch)
     calls = []
     query = gicp.Registration.correspondences
 
-    def counted(self, T, d, rows=None, step=None):
+    def counted(self, T, d, rows=None, step=None, **cells):
         if step is not None:  # the iterations' (not the covariance's, nor on other threads)
             calls.append((self, len(self.source) if rows is None else len(rows)))
-        return query(self, T, d, rows, step)
+        return query(self, T, d, rows, step, **cells)
 
     monkeypatch.setattr(gicp.Registration, "correspondences", counted)
     results, full = {}, {}

@@ -1044,8 +1044,11 @@ class Registration:
                                   time.perf_counter() - start, None, self._alpha)
 
     def correspondences(self, T: np.ndarray, d_max: float, rows: np.ndarray | None = None,
-                        step: float | None = None) -> Correspondences:
+                        step: float | None = None, cells: bool = True) -> Correspondences:
         """Return the correspondences (with omega_k) at ``T`` within ``d_max``.
+
+        ``cells`` False: no same-voxel matching, nor its decision (a coarse first stage's,
+        whose start may be too far off to decide whether the source lies inside the map).
 
         ``rows`` restricts the source to those points (indices stay into the full source).
         The candidates come from a :class:`NeighbourCache` (the same pairs) once ``step``,
@@ -1080,7 +1083,7 @@ class Registration:
                 corr = nearest_correspondences(moved, self.target_tree, d_max, cache)
         self._prefetch_source(corr.source_idx)
         corr = self._gated(T, d_max, corr)
-        if d_max <= self.config.max_correspondence_distance * (1 + 1e-9):
+        if cells and d_max <= self.config.max_correspondence_distance * (1 + 1e-9):
             corr = self.same_voxel(T, corr)
         return corr
 
@@ -1560,9 +1563,13 @@ class Registration:
                 if rescue and final_iterations > cfg.stage_iterations:
                     rescue, wide, T_prev = False, True, None
             # (the coarse first stage queries the tree: the final stage's neighbour cache, at
-            # the same d_max, is being prepared for every point on the second thread)
+            # the same d_max, is being prepared for every point on the second thread; and it
+            # leaves the same-voxel decision to the first iteration on every point, as
+            # annealing does: from the start, often not yet inside the map, it would wait
+            # for convergence and two or three more iterations)
             corr = self.correspondences(T, d, coarse if annealing else None,
-                                        np.inf if coarse_first else step)
+                                        np.inf if coarse_first else step,
+                                        cells=not coarse_first)
             if iterations == 1:
                 # after the first prefetch: the second thread computes the source rows the
                 # first whitening needs before it searches the map's grid (needed at
