@@ -15,13 +15,16 @@ from dataclasses import dataclass
 from .errors import FormatError
 from .fileio import check_input_file
 
-#: byte size of each PLY scalar type (both the classic and the sized names)
-PLY_TYPES = {
-    "char": 1, "uchar": 1, "int8": 1, "uint8": 1,
-    "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
-    "int": 4, "uint": 4, "int32": 4, "uint32": 4,
-    "float": 4, "float32": 4, "double": 8, "float64": 8,
+#: numpy kind of each PLY scalar type, both the classic and the sized names (the byte order
+#: is the file's)
+PLY_NUMPY_TYPES = {
+    "char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1",
+    "short": "i2", "ushort": "u2", "int16": "i2", "uint16": "u2",
+    "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
+#: byte size of each PLY scalar type
+PLY_TYPES = {name: int(kind[1]) for name, kind in PLY_NUMPY_TYPES.items()}
 PLY_FORMATS = ("ascii", "binary_little_endian", "binary_big_endian")
 #: longest header read (bytes)
 MAX_HEADER_BYTES = 1 << 16
@@ -166,15 +169,6 @@ def check_ply(path: str | os.PathLike) -> PlyHeader:
     return header
 
 
-#: numpy type of each PLY scalar type (byte order added by the reader)
-_NUMPY_TYPES = {
-    "char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1",
-    "short": "i2", "ushort": "u2", "int16": "i2", "uint16": "u2",
-    "int": "i4", "uint": "u4", "int32": "i4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
 def read_vertex_property(path: str | os.PathLike, header: PlyHeader, name: str):
     """Return the vertex property ``name`` of a checked PLY (:func:`check_ply`) as a numpy
     array of its own type.
@@ -197,7 +191,7 @@ def read_vertex_property(path: str | os.PathLike, header: PlyHeader, name: str):
             rows = (line for line in handle if line.strip())
             for _ in range(lines_before):
                 next(rows)
-            kind = _NUMPY_TYPES[vertex.properties[column][1]]
+            kind = PLY_NUMPY_TYPES[vertex.properties[column][1]]
             values = np.empty(vertex.count, dtype=kind)
             for row, line in enumerate(rows):
                 if row == vertex.count:
@@ -220,7 +214,7 @@ def read_vertex_property(path: str | os.PathLike, header: PlyHeader, name: str):
                               f"properties: cannot locate the vertex property {name!r}")
         before += element.count * element.fixed_row_bytes
     order = "<" if header.format == "binary_little_endian" else ">"
-    row = np.dtype([(f"p{i}", order + _NUMPY_TYPES[kind])
+    row = np.dtype([(f"p{i}", order + PLY_NUMPY_TYPES[kind])
                     for i, (_, kind) in enumerate(vertex.properties)])
     rows = np.memmap(path, dtype=row, mode="r", offset=header.data_start + before,
                      shape=(vertex.count,)) if vertex.count else np.zeros(0, row)

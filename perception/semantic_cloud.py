@@ -368,6 +368,8 @@ def _one_hot_from_file(path: Path, header, name: str, n_classes: int | None
     labels = raw.astype(np.int64)
     if n_classes is not None:
         c = int(n_classes)
+        if not 1 <= c <= MAX_CLASSES:
+            raise PerceptionError(f"n_classes must be 1..{MAX_CLASSES}, got {c}")
         if labels.min() < 0 or labels.max() >= c:
             bad = int(np.argmin(labels) if labels.min() < 0 else np.argmax(labels))
             raise FormatError(path, f"label {int(labels[bad])} at vertex {bad} is outside "

@@ -87,6 +87,8 @@ def test_ascii_float_labels_and_their_errors(tmp_path):
     assert numbered.n_classes == 5 and numbered.label_ids is None
     with pytest.raises(FormatError, match="outside 0..n_classes-1"):
         SemanticCloud.read_ply(path, n_classes=2)
+    with pytest.raises(PerceptionError, match="n_classes must be"):
+        SemanticCloud.read_ply(path, n_classes=10 ** 9)  # not an allocation of that size
     for value, what in (("2.5", "2.5"), ("nan", "nan")):
         path.write_text(head + f"0 0 0 1\n1 0 0 {value}\n0 1 0 1\n0 0 1 1\n")
         with pytest.raises(FormatError, match=f"cc.ply: label column 'scalar_Label' holds "
