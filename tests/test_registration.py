@@ -821,3 +821,10 @@ def test_a_start_at_the_final_distance_aligns_a_coarse_subset_first(monkeypatch)
     assert full[True] < full[False]
     step = gtsam.Pose3.Logmap(gtsam.Pose3(results[False].T).between(gtsam.Pose3(results[True].T)))
     assert np.linalg.norm(step) < 3e-4  # within a few convergence tolerances (1e-4)
+    # a start at the fixed point: one coarse step (below COARSE_FIRST_STEP), then every point
+    monkeypatch.setattr(gicp, "COARSE_FIRST", True)
+    calls.clear()
+    registration = Registration(source, target, RegistrationConfig())
+    registration.run(results[False].T)
+    own = [n for who, n in calls if who is registration]
+    assert own[0] < len(source) and own[1:] == [len(source)] * (len(own) - 1)
