@@ -124,13 +124,10 @@ class SemanticCloud:
             raise PerceptionError("labels must be non-negative")
         if n_classes is None:
             n_classes = int(labels.max()) + 1 if len(labels) else 1
-        if not 1 <= n_classes <= MAX_CLASSES:
-            raise PerceptionError(f"n_classes must be 1..{MAX_CLASSES}, got {n_classes}")
+        _check_class_count(n_classes)
         if len(labels) and labels.max() >= n_classes:
             raise PerceptionError(f"label {int(labels.max())} >= n_classes {n_classes}")
-        probs = np.zeros((len(labels), n_classes), dtype=np.float32)
-        probs[np.arange(len(labels)), labels.astype(np.int64)] = 1.0
-        return cls(points, probs, colors, class_names)
+        return cls(points, _one_hot(labels, n_classes), colors, class_names)
 
     @classmethod
     def from_rgbd(cls, rgb: np.ndarray, depth_m: np.ndarray, K: np.ndarray,
@@ -367,9 +364,7 @@ def _one_hot_from_file(path: Path, header, name: str, n_classes: int | None
                               f"{bad}: labels must be whole numbers")
     labels = raw.astype(np.int64)
     if n_classes is not None:
-        c = int(n_classes)
-        if not 1 <= c <= MAX_CLASSES:
-            raise PerceptionError(f"n_classes must be 1..{MAX_CLASSES}, got {c}")
+        c = _check_class_count(int(n_classes))
         if labels.min() < 0 or labels.max() >= c:
             bad = int(np.argmin(labels) if labels.min() < 0 else np.argmax(labels))
             raise FormatError(path, f"label {int(labels[bad])} at vertex {bad} is outside "
@@ -382,9 +377,22 @@ def _one_hot_from_file(path: Path, header, name: str, n_classes: int | None
                               f"{MAX_CLASSES}-class limit")
         ids = tuple(int(v) for v in values)
         c = len(values)
-    probs = np.zeros((len(labels), c), dtype=np.float32)
-    probs[np.arange(len(labels)), column.reshape(-1)] = 1.0
-    return probs, ids
+    return _one_hot(column, c), ids
+
+
+def _check_class_count(n_classes: int) -> int:
+    """Return ``n_classes`` if 1..MAX_CLASSES (checked before any one-hot allocation)."""
+    if not 1 <= n_classes <= MAX_CLASSES:
+        raise PerceptionError(f"n_classes must be 1..{MAX_CLASSES}, got {n_classes}")
+    return n_classes
+
+
+def _one_hot(column: np.ndarray, n_classes: int) -> np.ndarray:
+    """Return (N, n_classes) float32 one-hot probabilities of the class indices ``column``."""
+    column = np.asarray(column).reshape(-1).astype(np.int64)
+    probs = np.zeros((len(column), n_classes), dtype=np.float32)
+    probs[np.arange(len(column)), column] = 1.0
+    return probs
 
 
 def common_classes(a: SemanticCloud, b: SemanticCloud) -> tuple[SemanticCloud, SemanticCloud]:
