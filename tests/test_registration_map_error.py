@@ -83,7 +83,8 @@ def test_a_dense_source_is_consistent_only_with_the_term(room):
         source, T_gt, init, d0 = benchmark_start(points, labels, seed, 60000)
         r, _ = register_ours(source, target, init, (d0, D_FINAL))
         off, _ = register_ours(source, target, init, (d0, D_FINAL), map_error=None)
-        assert r.converged and r.diagnostic.map_error == pytest.approx(0.035 * 0.03, rel=1e-3)
+        assert r.converged and r.diagnostic.map_error == pytest.approx(
+            RegistrationConfig().map_error * 0.03, rel=1e-3)
         err = pose_error(r.T, T_gt)
         with_term.append(nees(err.tangent, r.covariance))
         without.append(nees(err.tangent, off.covariance))

@@ -700,3 +700,34 @@ def same_voxel_pairs(T, source, source_idx, target_idx, distances, aligned, targ
         new_target[p] = row
         new_dist[p] = np.sqrt(ex * ex + ey * ey + ez * ez)
     return new_target, new_dist
+
+
+@numba.njit(cache=True)
+def pooled_rows(cov: np.ndarray, source_rows: np.ndarray, target_rows: np.ndarray,
+                n_target: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return (G, 3, 3) means of ``cov[source_rows[m]]`` over the pairs m that share a target
+    row, and the (M,) group of each pair (groups numbered in order of first appearance)."""
+    slot = np.full(n_target, -1, np.int64)
+    m_pairs = target_rows.shape[0]
+    group = np.empty(m_pairs, np.int64)
+    g = 0
+    for m in range(m_pairs):
+        t = target_rows[m]
+        if slot[t] < 0:
+            slot[t] = g
+            g += 1
+        group[m] = slot[t]
+    sums = np.zeros((g, 3, 3))
+    counts = np.zeros(g)
+    for m in range(m_pairs):
+        j = group[m]
+        c = cov[source_rows[m]]
+        for a in range(3):
+            for b in range(3):
+                sums[j, a, b] += c[a, b]
+        counts[j] += 1.0
+    for j in range(g):
+        for a in range(3):
+            for b in range(3):
+                sums[j, a, b] /= counts[j]
+    return sums, group

@@ -93,6 +93,15 @@ def whitening_rows_into(out: np.ndarray, cov_target: np.ndarray, target_rows: np
                                  _rows(source_rows), _f8(R))
 
 
+def pooled_covariances(cov_source: np.ndarray, source_rows: np.ndarray,
+                       target_rows: np.ndarray, n_target: int) -> tuple[np.ndarray, np.ndarray]:
+    """Return (covariances, rows): the mean of ``cov_source[source_rows]`` over the pairs that
+    share a target row, and each pair's row of it, for :func:`whitening_rows` in place of
+    ``(cov_source, source_rows)``. ``n_target``: the target's row count."""
+    return _kernels.pooled_rows(_f8(cov_source), _rows(source_rows), _rows(target_rows),
+                                int(n_target))
+
+
 def gicp_terms(T: np.ndarray, source: np.ndarray, target: np.ndarray, Ut: np.ndarray,
                jacobians: bool = True, sqrt_weights: np.ndarray | None = None) -> GicpTerms:
     """Return whitened residuals (and Jacobians) of eq. (3) at the 4x4 ``T``.
