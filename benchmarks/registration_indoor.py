@@ -47,7 +47,9 @@ RegistrationConfig but for the schedule), "gicp-se3-nogate" (ours with ``boundar
 the estimator before the boundary gate), "gicp-se3-nearest" (ours with ``voxel_matching=None``:
 the nearest centroid throughout, the estimator before same-voxel matching),
 "gicp-se3-midpoint" (ours with ``partial_voxel_matching=False``: a partial overlap matched by
-nearest centroids, the midpoint of both directions, as before the fifteenth round), "open3d-gicp"
+nearest centroids, the midpoint of both directions, as before the fifteenth round),
+"gicp-se3-own" (ours with ``pooled_source_covariance=False``: each source point whitened with
+its own covariance inside a centroid map, as before the nineteenth round), "open3d-gicp"
 (CauchyLoss(1.0), the reference of the ratios). Semantic-ICP uses one-hot labels (the wrong
 ones too). NEES = e^T P^-1 e of the final error against the reported covariance; every trial is
 an independent source (another half, subsample, noise, labels, ground truth), the map is the
@@ -123,7 +125,7 @@ PITCH = 0.03
 # --initial-corr do; Open3D: its two calls both at the final d_max)
 OFFSETS = {**SIMULATOR_OFFSETS, "near": (0.05, 2.0, D_FINAL)}
 METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "gicp-se3-midpoint",
-           "open3d-gicp")
+           "gicp-se3-own", "open3d-gicp")
 PART_OVERLAP = 1.0  # m: width of the slab two parts share (setting "part")
 SOURCE_POINTS = 15000  # points drawn for a trial's source (--source-points; 0: all)
 
@@ -330,7 +332,9 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
                 options = {**(ours or {}), **{"gicp-se3-nogate": {"boundary_gate": None},
                                               "gicp-se3-nearest": {"voxel_matching": None},
                                               "gicp-se3-midpoint": {
-                                                  "partial_voxel_matching": False}
+                                                  "partial_voxel_matching": False},
+                                              "gicp-se3-own": {
+                                                  "pooled_source_covariance": False},
                                               }.get(method, {})}
                 result, seconds = register_ours(source, target, init, (d0, D_FINAL),
                                                 semantic=method == "semantic-icp", **options)

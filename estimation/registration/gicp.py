@@ -291,7 +291,10 @@ class RegistrationConfig:
         thin ones (a single laser scan's map, 3 mm) hardly: the size needed on the four
         RGB-D room maps at 15k points spreads 0.055-0.068 of the local thickness where it
         spread 0.018-0.027 pitch unscaled, which over-covered the scan 3-6x (docs/
-        registration.md, "A single laser scan's map"). Empirical. None = not added
+        registration.md, "A single laser scan's map"). 0.028 since one covariance per
+        centroid (``pooled_source_covariance``) took the TUM room's dense cells' errors
+        down (0.035 before; docs/registration.md, "The size with one covariance per
+        centroid"). Empirical. None = not added
     map_error_block : edge (m) of the cubes displaced together by ``map_error`` (0.8 m, an
         object's scale; 0.4 m needs a larger ``map_error`` and fits as well)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
