@@ -264,7 +264,7 @@ class RegistrationConfig:
         plane covariance weights the parts of a cell unevenly (a table's top against the
         objects on it), and the cells' uneven weights add up over a room instead of
         averaging out. Raw half rooms against their 3 cm map (TUM fr1/rpy, ICL-NUIM office):
-        mean error 0.87 -> 0.46 mm and 0.83 -> 0.51 mm (docs/registration.md, "One
+        mean error 0.87 -> 0.37 mm and 0.83 -> 0.52 mm (docs/registration.md, "One
         covariance per centroid"). A source no denser than the map is almost unchanged.
         False = each source point's own covariance (the earlier estimator)
     crossing_bias : with same-voxel matching, add the model error of the source points that
