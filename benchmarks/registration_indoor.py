@@ -135,8 +135,10 @@ def labelled(points: np.ndarray, labels: np.ndarray) -> SemanticCloud:
     return SemanticCloud.from_labels(points, labels, N_CLASSES)
 
 
-def room_cloud(name: str, step: int = 5, data: Path = DATA) -> tuple[np.ndarray, np.ndarray]:
-    """Return (points (N, 3), geometric class labels (N,)) of the fused room ``name``."""
+def room_cloud(name: str, step: int = 5, data: Path = DATA,
+               start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Return (points (N, 3), geometric class labels (N,)) of the room ``name`` fused from
+    its frames ``start``, ``start + step``, ..."""
     from perception.rgbd import CameraIntrinsics, TumRgbdSequence, backproject, voxel_filter
 
     if name == "scan":
@@ -145,7 +147,7 @@ def room_cloud(name: str, step: int = 5, data: Path = DATA) -> tuple[np.ndarray,
     intr = CameraIntrinsics(fx, fy, cx, cy, 640, 480, 5000.0)
     seq = TumRgbdSequence(data / folder, intr, distortion=distortion)
     parts = []
-    for index in range(0, len(seq), step):
+    for index in range(start, len(seq), step):
         frame = seq[index]
         if frame.T_world_camera_gt is None:
             continue
@@ -294,7 +296,7 @@ def half_room_trials(points: np.ndarray, labels: np.ndarray, target: SemanticClo
 
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="half",
              phases=0, source_points=SOURCE_POINTS, ours: dict | None = None,
-             map_phase: str = "fixed") -> dict:
+             map_phase: str = "fixed", source_cloud: tuple | None = None) -> dict:
     """Return every trial's numbers of one (room, map kind, offset, setting) cell.
 
     ``ours``: further RegistrationConfig fields for every method of ours. ``map_phase``
@@ -303,6 +305,9 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
 
     ``phases`` > 1 (GICP-SE(3), "half"): also the NEES with the grid-phase covariance
     (:func:`phase_covariance`) added, as ``nees_phase``.
+
+    ``source_cloud`` (points, labels; "half"): draw each trial's half from this cloud (other
+    depth frames of the room) instead of the map's own points, without added noise.
     """
     # one map for every trial, or (a part's map, a random phase) one per trial below
     target = (labelled(*voxel_map(points, labels, kind))
@@ -318,7 +323,9 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
             source, T_gt, part = room_part_source(points, labels, rng, n=source_points)
             target = labelled(*voxel_map(points[part], labels[part], kind, shift=shift))
         else:
-            source, T_gt = half_room_source(points, labels, rng, source_points)
+            source, T_gt = (half_room_source(points, labels, rng, source_points)
+                            if source_cloud is None else
+                            half_room_source(*source_cloud, rng, source_points, noise=0.0))
             if shift is not None:
                 target = labelled(*voxel_map(points, labels, kind, shift=shift))
         sizes.append(len(target.points))
@@ -474,6 +481,12 @@ def main(argv=None) -> int:
     parser.add_argument("--map-error", default=None, metavar="S",
                         help="RegistrationConfig.map_error for ours, in pitches, or 'none' "
                         "(the term off; default: the config's default)")
+    parser.add_argument("--source-frames", default="map", choices=("map", "other"),
+                        help="map: each half is drawn from the map's own points with 5 mm "
+                        "of noise added; other: the map is fused from every 2*STEP-th "
+                        "frame from the first, the halves from the frames between (an "
+                        "independent scan of the room, its own sensor noise only; half "
+                        "setting, RGB-D rooms)")
     args = parser.parse_args(argv)
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
     for field in ("map_error", "lattice_noise"):
@@ -486,6 +499,8 @@ def main(argv=None) -> int:
                              f"got {value!r}")
     if set(args.rooms.split(",")) - set(ROOMS):
         parser.error(f"--rooms must be from {', '.join(ROOMS)}")
+    if args.source_frames == "other" and (args.setting != "half" or "scan" in args.rooms):
+        parser.error("--source-frames other needs --setting half and RGB-D rooms (tum, icl)")
     if args.source_points < 0:
         parser.error("--source-points must be 0 (all) or positive")
     if args.classes < N_GEOMETRIC:
@@ -500,10 +515,17 @@ def main(argv=None) -> int:
     out = {}
     print(f"load average at start {os.getloadavg()[0]:.2f}")
     for name in args.rooms.split(","):
-        points, labels = room_cloud(name, args.step)
+        other = args.source_frames == "other"
+        points, labels = room_cloud(name, 2 * args.step if other else args.step)
+        source_cloud = room_cloud(name, 2 * args.step, start=args.step) if other else None
         if N_CLASSES > N_GEOMETRIC:
             labels = object_labels(points, labels, N_CLASSES)
-        print(f"{name} room: {len(points)} points, classes {np.bincount(labels).tolist()}")
+            if other:
+                source_cloud = (source_cloud[0],
+                                object_labels(source_cloud[0], source_cloud[1], N_CLASSES))
+        print(f"{name} room: {len(points)} points, classes {np.bincount(labels).tolist()}"
+              + (f"; halves from the other frames' {len(source_cloud[0])} points"
+                 if other else ""))
         # compile/load the numba kernels outside the timings
         warm = labelled(points[::50], labels[::50])
         register_ours(warm, warm, np.eye(4), (D_FINAL,))
@@ -512,7 +534,7 @@ def main(argv=None) -> int:
                 cell = run_cell(points, labels, kind, offset, args.trials, methods,
                                 setting=args.setting, phases=args.phase_covariance,
                                 source_points=args.source_points, ours=ours,
-                                map_phase=args.map_phase)
+                                map_phase=args.map_phase, source_cloud=source_cloud)
                 report(name, kind, offset, cell, args.setting)
                 out[f"{name}/{kind}/{offset}/{args.setting}"] = cell
     print(f"\nload average at end {os.getloadavg()[0]:.2f}")
