@@ -77,8 +77,16 @@ def test_the_rematched_bread_is_the_same_whichever_thread_computes_it(monkeypatc
         return plain(self, *args, **kwargs)
 
     monkeypatch.setattr(gicp.Registration, "correspondences", spied)
-    beside = _bread(reg, result, sigma)
-    # (the first call: solution_terms) some poses on the second thread, each with the twin
+    # (the first call: solution_terms) some poses on the second thread, each with the twin.
+    # Under load the second thread may start only after this one has taken every pose (it
+    # then computes them all here, as designed; measured once in a loaded make test), so a
+    # few attempts are allowed for it to take part
+    for _ in range(5):
+        gicp._reverse_executor().submit(lambda: None).result()  # (idle before the bread)
+        calls.clear()
+        beside = _bread(reg, result, sigma)
+        if (False, False) in calls[1:]:
+            break
     assert (False, False) in calls[1:] and set(calls) <= {(True, True), (False, False)}
     calls.clear()
     release = threading.Event()
