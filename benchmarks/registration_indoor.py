@@ -521,8 +521,7 @@ def main(argv=None) -> int:
         if N_CLASSES > N_GEOMETRIC:
             labels = object_labels(points, labels, N_CLASSES)
             if other:
-                source_cloud = (source_cloud[0],
-                                object_labels(source_cloud[0], source_cloud[1], N_CLASSES))
+                source_cloud = (source_cloud[0], object_labels(*source_cloud, N_CLASSES))
         print(f"{name} room: {len(points)} points, classes {np.bincount(labels).tolist()}"
               + (f"; halves from the other frames' {len(source_cloud[0])} points"
                  if other else ""))
