@@ -30,7 +30,8 @@ map (target)
 source (per trial, seeded)
     The room's points on one side of a random vertical plane through its centroid, 15000 of
     them drawn at random (``--source-points``; 0: all of them, a raw half-room cloud), 5 mm
-    Gaussian noise added, 10 % of the labels changed to another class at random, moved into
+    Gaussian noise added (``--noise``; 0: the map's points as they are), 10 % of the
+    labels changed to another class at random, moved into
     their own frame by a random rigid transform (5-30 deg, about 1.7 m): the exact ground
     truth ``T_target_source``.
 setting
@@ -128,6 +129,7 @@ METHODS = ("gicp-se3", "semantic-icp", "gicp-se3-nogate", "gicp-se3-nearest", "g
            "gicp-se3-own", "open3d-gicp")
 PART_OVERLAP = 1.0  # m: width of the slab two parts share (setting "part")
 SOURCE_POINTS = 15000  # points drawn for a trial's source (--source-points; 0: all)
+SOURCE_NOISE = 0.005  # the noise (m, per axis) added to a source of the map's points (--noise)
 
 
 def labelled(points: np.ndarray, labels: np.ndarray) -> SemanticCloud:
@@ -216,7 +218,7 @@ def voxel_map(points: np.ndarray, labels: np.ndarray, kind: str, pitch: float = 
 
 
 def half_room_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                     n: int = SOURCE_POINTS, noise: float = 0.005, wrong: float = 0.1
+                     n: int = SOURCE_POINTS, noise: float = SOURCE_NOISE, wrong: float = 0.1
                      ) -> tuple[SemanticCloud, np.ndarray]:
     """Return (source cloud in its own frame, T_target_source) of one trial."""
     source, T, _ = room_part_source(points, labels, rng, 0.0, n, noise, wrong)
@@ -224,7 +226,8 @@ def half_room_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Gene
 
 
 def room_part_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                     overlap: float = PART_OVERLAP, n: int = SOURCE_POINTS, noise: float = 0.005,
+                     overlap: float = PART_OVERLAP, n: int = SOURCE_POINTS,
+                     noise: float = SOURCE_NOISE,
                      wrong: float = 0.1) -> tuple[SemanticCloud, np.ndarray, np.ndarray]:
     """Return (source cloud in its own frame, T_target_source, rows of the target's part).
 
@@ -296,7 +299,8 @@ def half_room_trials(points: np.ndarray, labels: np.ndarray, target: SemanticClo
 
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="half",
              phases=0, source_points=SOURCE_POINTS, ours: dict | None = None,
-             map_phase: str = "fixed", source_cloud: tuple | None = None) -> dict:
+             map_phase: str = "fixed", source_cloud: tuple | None = None,
+             noise: float = SOURCE_NOISE) -> dict:
     """Return every trial's numbers of one (room, map kind, offset, setting) cell.
 
     ``ours``: further RegistrationConfig fields for every method of ours. ``map_phase``
@@ -308,6 +312,9 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
 
     ``source_cloud`` (points, labels; "half"): draw each trial's half from this cloud (other
     depth frames of the room) instead of the map's own points, without added noise.
+
+    ``noise``: the standard deviation (m, per axis) of the Gaussian noise added to a source
+    drawn from the map's own points (0: the map's points themselves).
     """
     # one map for every trial, or (a part's map, a random phase) one per trial below
     target = (labelled(*voxel_map(points, labels, kind))
@@ -320,10 +327,11 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
         rng = np.random.default_rng(trial)
         shift = phase_shift(trial) if map_phase == "random" else None
         if setting == "part":
-            source, T_gt, part = room_part_source(points, labels, rng, n=source_points)
+            source, T_gt, part = room_part_source(points, labels, rng, n=source_points,
+                                                  noise=noise)
             target = labelled(*voxel_map(points[part], labels[part], kind, shift=shift))
         else:
-            source, T_gt = (half_room_source(points, labels, rng, source_points)
+            source, T_gt = (half_room_source(points, labels, rng, source_points, noise)
                             if source_cloud is None else
                             half_room_source(*source_cloud, rng, source_points, noise=0.0))
             if shift is not None:
@@ -487,6 +495,10 @@ def main(argv=None) -> int:
                         "frame from the first, the halves from the frames between (an "
                         "independent scan of the room, its own sensor noise only; half "
                         "setting, RGB-D rooms)")
+    parser.add_argument("--noise", type=float, default=SOURCE_NOISE, metavar="M",
+                        help="the Gaussian noise (m, per axis) added to a source drawn from "
+                        "the map's own points (0: none; not with --source-frames other, "
+                        "whose halves carry their own sensor noise only)")
     args = parser.parse_args(argv)
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
     for field in ("map_error", "lattice_noise"):
@@ -501,6 +513,11 @@ def main(argv=None) -> int:
         parser.error(f"--rooms must be from {', '.join(ROOMS)}")
     if args.source_frames == "other" and (args.setting != "half" or "scan" in args.rooms):
         parser.error("--source-frames other needs --setting half and RGB-D rooms (tum, icl)")
+    if not (np.isfinite(args.noise) and args.noise >= 0.0):
+        parser.error(f"--noise must be a finite number >= 0, got {args.noise}")
+    if args.source_frames == "other" and args.noise != SOURCE_NOISE:
+        parser.error("--noise applies to sources drawn from the map's own points, not to "
+                     "--source-frames other")
     if args.source_points < 0:
         parser.error("--source-points must be 0 (all) or positive")
     if args.classes < N_GEOMETRIC:
@@ -524,7 +541,7 @@ def main(argv=None) -> int:
                 source_cloud = (source_cloud[0], object_labels(*source_cloud, N_CLASSES))
         print(f"{name} room: {len(points)} points, classes {np.bincount(labels).tolist()}"
               + (f"; halves from the other frames' {len(source_cloud[0])} points"
-                 if other else ""))
+                 if other else f"; sources with {args.noise * 1e3:g} mm of noise"))
         # compile/load the numba kernels outside the timings
         warm = labelled(points[::50], labels[::50])
         register_ours(warm, warm, np.eye(4), (D_FINAL,))
@@ -533,7 +550,8 @@ def main(argv=None) -> int:
                 cell = run_cell(points, labels, kind, offset, args.trials, methods,
                                 setting=args.setting, phases=args.phase_covariance,
                                 source_points=args.source_points, ours=ours,
-                                map_phase=args.map_phase, source_cloud=source_cloud)
+                                map_phase=args.map_phase, source_cloud=source_cloud,
+                                noise=args.noise)
                 report(name, kind, offset, cell, args.setting)
                 out[f"{name}/{kind}/{offset}/{args.setting}"] = cell
     print(f"\nload average at end {os.getloadavg()[0]:.2f}")

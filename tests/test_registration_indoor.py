@@ -262,8 +262,25 @@ def test_source_points_zero_takes_the_whole_half():
         main(["--source-points", "-1"])
 
 
+def test_noise_zero_gives_the_maps_own_points():
+    """``--noise 0``: the half is the room's points themselves, moved by the truth; the
+    default adds 5 mm per axis."""
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-3.0, 3.0, (5000, 3))
+    labels = rng.integers(0, 4, len(points))
+    exact, T = half_room_source(points, labels, np.random.default_rng(1), 0, noise=0.0)
+    noisy, _ = half_room_source(points, labels, np.random.default_rng(1), 0)
+    from scipy.spatial import cKDTree
+    dist = cKDTree(points).query(exact.points @ T[:3, :3].T + T[:3, 3])[0]
+    assert dist.max() < 1e-9
+    moved = noisy.points @ T[:3, :3].T + T[:3, 3] - (exact.points @ T[:3, :3].T + T[:3, 3])
+    assert 0.004 < moved.std() < 0.006
+
+
 @pytest.mark.parametrize("argv", [["--map-error", "big"], ["--lattice-noise", "5 mm"],
-                                  ["--rooms", "tum,kitchen"]])
+                                  ["--rooms", "tum,kitchen"], ["--noise", "-0.001"],
+                                  ["--noise", "nan"],
+                                  ["--noise", "0", "--source-frames", "other"]])
 def test_benchmark_refuses_a_bad_map_error_or_room(argv, capsys):
     from benchmarks.registration_indoor import main
 
