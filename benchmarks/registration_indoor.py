@@ -30,10 +30,9 @@ map (target)
 source (per trial, seeded)
     The room's points on one side of a random vertical plane through its centroid, 15000 of
     them drawn at random (``--source-points``; 0: all of them, a raw half-room cloud), 5 mm
-    Gaussian noise added (``--noise``; 0: the map's points as they are), 10 % of the
-    labels changed to another class at random, moved into
-    their own frame by a random rigid transform (5-30 deg, about 1.7 m): the exact ground
-    truth ``T_target_source``.
+    Gaussian noise added (``--noise``; 0: the map's points as they are), 10 % of the labels
+    changed to another class at random, moved into their own frame by a random rigid
+    transform (5-30 deg, about 1.7 m): the exact ground truth ``T_target_source``.
 setting
     ``half`` (default, the held-out check's case): that half against the map of the whole
     room, so the source lies inside the map. ``part``: two overlapping parts, as two scans
@@ -495,10 +494,11 @@ def main(argv=None) -> int:
                         "frame from the first, the halves from the frames between (an "
                         "independent scan of the room, its own sensor noise only; half "
                         "setting, RGB-D rooms)")
-    parser.add_argument("--noise", type=float, default=SOURCE_NOISE, metavar="M",
+    parser.add_argument("--noise", type=float, default=None, metavar="M",
                         help="the Gaussian noise (m, per axis) added to a source drawn from "
-                        "the map's own points (0: none; not with --source-frames other, "
-                        "whose halves carry their own sensor noise only)")
+                        f"the map's own points (default {SOURCE_NOISE:g}; 0: none; not with "
+                        "--source-frames other, whose halves carry their own sensor noise "
+                        "only)")
     args = parser.parse_args(argv)
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
     for field in ("map_error", "lattice_noise"):
@@ -513,11 +513,12 @@ def main(argv=None) -> int:
         parser.error(f"--rooms must be from {', '.join(ROOMS)}")
     if args.source_frames == "other" and (args.setting != "half" or "scan" in args.rooms):
         parser.error("--source-frames other needs --setting half and RGB-D rooms (tum, icl)")
-    if not (np.isfinite(args.noise) and args.noise >= 0.0):
-        parser.error(f"--noise must be a finite number >= 0, got {args.noise}")
-    if args.source_frames == "other" and args.noise != SOURCE_NOISE:
+    if args.noise is not None and args.source_frames == "other":
         parser.error("--noise applies to sources drawn from the map's own points, not to "
                      "--source-frames other")
+    args.noise = SOURCE_NOISE if args.noise is None else args.noise
+    if not (np.isfinite(args.noise) and args.noise >= 0.0):
+        parser.error(f"--noise must be a finite number >= 0, got {args.noise}")
     if args.source_points < 0:
         parser.error("--source-points must be 0 (all) or positive")
     if args.classes < N_GEOMETRIC:
