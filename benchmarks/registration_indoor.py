@@ -310,10 +310,10 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
     (:func:`phase_covariance`) added, as ``nees_phase``.
 
     ``source_cloud`` (points, labels; "half"): draw each trial's half from this cloud (other
-    depth frames of the room) instead of the map's own points, without added noise.
+    depth frames of the room) instead of the map's own points.
 
-    ``noise``: the standard deviation (m, per axis) of the Gaussian noise added to a source
-    drawn from the map's own points (0: the map's points themselves).
+    ``noise``: the standard deviation (m, per axis) of the Gaussian noise added to each
+    trial's source (0: the drawn points themselves).
     """
     # one map for every trial, or (a part's map, a random phase) one per trial below
     target = (labelled(*voxel_map(points, labels, kind))
@@ -330,9 +330,8 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
                                                   noise=noise)
             target = labelled(*voxel_map(points[part], labels[part], kind, shift=shift))
         else:
-            source, T_gt = (half_room_source(points, labels, rng, source_points, noise)
-                            if source_cloud is None else
-                            half_room_source(*source_cloud, rng, source_points, noise=0.0))
+            cloud = (points, labels) if source_cloud is None else source_cloud
+            source, T_gt = half_room_source(*cloud, rng, source_points, noise)
             if shift is not None:
                 target = labelled(*voxel_map(points, labels, kind, shift=shift))
         sizes.append(len(target.points))
@@ -516,7 +515,9 @@ def main(argv=None) -> int:
     if args.noise is not None and args.source_frames == "other":
         parser.error("--noise applies to sources drawn from the map's own points, not to "
                      "--source-frames other")
-    args.noise = SOURCE_NOISE if args.noise is None else args.noise
+    # (the other frames' halves carry their own sensor noise only)
+    if args.noise is None:
+        args.noise = 0.0 if args.source_frames == "other" else SOURCE_NOISE
     if not (np.isfinite(args.noise) and args.noise >= 0.0):
         parser.error(f"--noise must be a finite number >= 0, got {args.noise}")
     if args.source_points < 0:
