@@ -218,6 +218,17 @@ class LazyCovariances:
                 return
             self._fill(rows[start:start + chunk], wait=False)
 
+    def fill_beside(self, idx: np.ndarray, submit) -> None:
+        """Compute the missing rows of ``idx``: the second half (in leaf order) through
+        ``submit(function, *args)`` (another thread's executor), the first on this thread;
+        then any of them the other thread has not taken yet, and wait for the rest."""
+        rows = np.unique(idx[~self.done[idx]])
+        rows = rows[np.argsort(self._leaf_rank[rows])]
+        half = len(rows) // 2
+        submit(self.prefetch, rows[half:], SHARED_CHUNK)
+        self._fill(rows[:half])
+        self._fill(rows)
+
     def __getitem__(self, idx: np.ndarray) -> np.ndarray:
         self._fill(idx)
         return self.values[idx]

@@ -143,9 +143,12 @@ class RegistrationConfig:
     cached_neighbours : k of the exact cached-candidate nearest-neighbour search
         (:class:`NeighbourCache`) used once the steps have become small (``CACHE_STEP``), and
         after the iterations (0 = a KD-tree query every time; the same pairs)
-    coarse_points : while the correspondence distance is still annealing, only an evenly
-        strided subset of about this many source points is matched (a coarse alignment needs
-        few points, and queries at large d_max are the most expensive); None = all
+    coarse_points : while the correspondence distance is still annealing, only a subset of
+        about this many source points is matched (a coarse alignment needs few points, and
+        queries at large d_max are the most expensive): half of it evenly strided, half
+        spread evenly over the directions of the surface normals (``NORMAL_SPACE_SAMPLING``,
+        normal-space sampling, so that a dominant surface does not let the coarse stage
+        slide along it); None = all
     surface_radius : None = residuals between the matched samples; a radius (m) = between
         their local surface positions, the mean of each cloud's points within this radius
         (:func:`.correspondences.local_means`; correspondences are still searched among the
@@ -788,6 +791,68 @@ SPLIT_PAIRS = 20000
 # matched source rows whose covariances are computed on the second thread when at least this
 # many are missing (Registration._prefetch_source); fewer are not worth a hand-over
 PREFETCH_ROWS = 256
+
+
+# the annealing stages' subset of a large source (RegistrationConfig.coarse_points): half of
+# it evenly strided, half spread evenly over the directions of the surface normals
+# (normal-space sampling, Rusinkiewicz and Levoy 2001) from NORMAL_SPACE_POOL times as many
+# evenly strided rows (False: all of it evenly strided). An evenly strided subset is mostly a
+# room's dominant surfaces, along which the coarse stage can slide into another basin (ICL-NUIM
+# office, 15k-point halves from 0.2 m / 8 deg: 4 of 30 starts, which Open3D GICP missed too);
+# a subset spread over the normals alone lost the dominant surfaces' pull that a wide start
+# needs (simulated rooms from 1 m / 40 deg: 4 of 64 more starts missed). docs/registration.md,
+# "Normal-space sampling"
+NORMAL_SPACE_SAMPLING = True
+NORMAL_SPACE_POOL = 4
+# the hemisphere of normal directions (n and -n are one) in NORMAL_BINS[0] bands of equal
+# n_z, each in NORMAL_BINS[1] sectors of equal azimuth: 32 bins of equal area (a cube map's
+# 27 bins, without the pole, kept 3 of the 5 rescued starts below: docs/registration.md)
+NORMAL_BINS = (4, 8)
+
+
+def covariance_normals(covariances: np.ndarray) -> np.ndarray:
+    """Return the (M, 3) unit normals of GICP covariances ``I - (1 - epsilon) n n^T`` (the
+    column of ``I - C`` with the largest diagonal, normalised: the kernels' rule), with
+    ``n_z >= 0``; zero rows where ``C`` is isotropic (no surface)."""
+    outer = np.eye(3) - covariances
+    column = np.argmax(np.einsum("kii->ki", outer), axis=1)
+    normals = outer[np.arange(len(outer)), :, column]
+    norm = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, norm, out=np.zeros_like(normals), where=norm > 1e-9)
+    normals[normals[:, 2] < 0] *= -1
+    return normals
+
+
+def normal_bins(normals: np.ndarray) -> np.ndarray:
+    """Return each unit normal's (``n_z >= 0``) bin of :data:`NORMAL_BINS`; one more bin for
+    a zero normal."""
+    bands, sectors = NORMAL_BINS
+    band = np.minimum((normals[:, 2] * bands).astype(int), bands - 1)
+    azimuth = (np.arctan2(normals[:, 1], normals[:, 0]) + np.pi) / (2 * np.pi)
+    sector = np.minimum((azimuth * sectors).astype(int), sectors - 1)
+    return np.where(np.any(normals != 0, axis=1), band * sectors + sector, bands * sectors)
+
+
+def normal_space_rows(normals: np.ndarray, n: int) -> np.ndarray:
+    """Return the sorted indices of about ``n`` (at most ``n``) rows of ``normals`` (M, 3),
+    spread evenly over the normals' directions (normal-space sampling): each bin of
+    :func:`normal_bins` gives the same number of rows, evenly strided within the bin, and a
+    bin with fewer gives all of its own (rows without a normal make one bin of their own)."""
+    bins = normal_bins(normals)
+    counts = np.bincount(bins, minlength=np.prod(NORMAL_BINS) + 1)
+    # the quota: the largest q with sum(min(counts, q)) <= n (the smaller bins whole)
+    sizes = np.sort(counts[counts > 0])
+    quota, taken = sizes[-1], 0
+    for i, size in enumerate(sizes):
+        share = (n - taken) // (len(sizes) - i)
+        if size > share:
+            quota = share
+            break
+        taken += size
+    order = np.argsort(bins, kind="stable")
+    chosen = [members[np.linspace(0, len(members) - 1, min(len(members), quota)).astype(int)]
+              for members in np.split(order, np.cumsum(counts)[:-1]) if len(members)]
+    return np.sort(np.concatenate(chosen))
 
 
 def _reverse_executor():
@@ -1554,10 +1619,7 @@ class Registration:
         iterations = 0
         T_prev = None
         stage_iterations = 0
-        n_src = len(self.source)
-        coarse = None
-        if cfg.coarse_points and n_src > 2 * cfg.coarse_points:
-            coarse = np.arange(0, n_src, n_src // cfg.coarse_points)
+        coarse = self._coarse_rows()
         # every annealing stage is capped by stage_iterations and the final one by
         # max_iterations; the hard cap also bounds a schedule that never reaches d_final
         annealing_budget = 0
@@ -1669,6 +1731,24 @@ class Registration:
                 T_new, last_step = _extrapolated(T_new, xi, last_step)
             T_prev, T = T, T_new
         return self._finish(T, d_final, converged, reason, iterations, cost_log, start)
+
+    def _coarse_rows(self) -> np.ndarray | None:
+        """The source rows the annealing stages match (None: every row)."""
+        cfg = self.config
+        n_src = len(self.source)
+        if not cfg.coarse_points or n_src <= 2 * cfg.coarse_points:
+            return None
+        if not NORMAL_SPACE_SAMPLING:
+            return np.arange(0, n_src, n_src // cfg.coarse_points)
+        pool = np.arange(0, n_src, max(n_src // (NORMAL_SPACE_POOL * cfg.coarse_points), 1))
+        cov = self.source_cov
+        if isinstance(cov, LazyCovariances) and self._prefetching:
+            # (half of them on the second thread; the final stage matches every row too)
+            cov.fill_beside(pool, _reverse_executor().submit)
+        normals = covariance_normals(cov[pool])
+        half = cfg.coarse_points // 2
+        return np.union1d(np.arange(0, n_src, n_src // half),
+                          pool[normal_space_rows(normals, half)])
 
     def solution_terms(self, T: np.ndarray, d_max: float,
                        corr: Correspondences | None = None) -> SolutionTerms | None:
