@@ -817,7 +817,8 @@ def test_a_start_at_the_final_distance_aligns_a_coarse_subset_first(monkeypatch)
         coarse = [n for n in own if n < len(source)]
         # the coarse stage ran first, on about coarse_points rows
         assert (len(coarse) >= 2 and own[:len(coarse)] == coarse) == coarse_first
-        assert all(2900 <= n <= 3100 for n in coarse)
+        # (half evenly strided, half over the normals' directions: rows in both count once)
+        assert all(2400 <= n <= 3000 for n in coarse), coarse
     assert full[True] < full[False]
     step = gtsam.Pose3.Logmap(gtsam.Pose3(results[False].T).between(gtsam.Pose3(results[True].T)))
     assert np.linalg.norm(step) < 3e-4  # within a few convergence tolerances (1e-4)

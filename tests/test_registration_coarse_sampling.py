@@ -74,7 +74,7 @@ def test_the_coarse_stage_matches_the_normal_space_rows(monkeypatch):
     rows = reg._coarse_rows()
     # half strided (about 50 wall rows), half over the normals' bins: the wall's two (its
     # normal's sign) of about ten (the floor's noise spreads it over the polar band's sectors)
-    assert len(rows) <= 2000 and (rows >= n).sum() > 150
+    assert len(rows) <= 2000 and (rows >= n).mean() > 0.15  # measured 20 %
     monkeypatch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)
     strided = reg._coarse_rows()
     assert (strided >= n).mean() < 0.06

@@ -29,6 +29,16 @@ from estimation.registration.correspondences import (
 from estimation.registration.metrics import offset_about_centroid
 
 
+@pytest.fixture(scope="module", autouse=True)
+def strided_coarse_subset():
+    # the starts below as the evenly strided coarse subset takes them (half of it over the
+    # normals' directions finds start 1, 6 mm off but unconverged, and loses start 0:
+    # docs/registration.md, "Normal-space sampling of the coarse subset")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)
+        yield
+
+
 @pytest.fixture(scope="module")
 def office(centroid_room):
     return centroid_room("icl", 10)
