@@ -498,7 +498,16 @@ def main(argv=None) -> int:
                         f"the map's own points (default {SOURCE_NOISE:g}; 0: none; not with "
                         "--source-frames other, whose halves carry their own sensor noise "
                         "only)")
+    parser.add_argument("--coarse", default="normals", choices=("normals", "strided"),
+                        help="ours' coarse subset: half of it over the surface normals' "
+                        "directions (default), or all of it evenly strided (before the "
+                        "twenty-first round; docs/registration.md, 'Normal-space sampling "
+                        "of the coarse subset')")
     args = parser.parse_args(argv)
+    if args.coarse == "strided":
+        from estimation.registration import gicp
+
+        gicp.NORMAL_SPACE_SAMPLING = False
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
     for field in ("map_error", "lattice_noise"):
         value = getattr(args, field)

@@ -282,7 +282,8 @@ def test_noise_zero_gives_the_maps_own_points():
 @pytest.mark.parametrize("argv", [["--map-error", "big"], ["--lattice-noise", "5 mm"],
                                   ["--rooms", "tum,kitchen"], ["--noise", "-0.001"],
                                   ["--noise", "nan"],
-                                  ["--noise", "0.005", "--source-frames", "other"]])
+                                  ["--noise", "0.005", "--source-frames", "other"],
+                                  ["--coarse", "random"]])
 def test_benchmark_refuses_a_bad_option(argv, capsys):
     from benchmarks.registration_indoor import main
 
@@ -290,6 +291,29 @@ def test_benchmark_refuses_a_bad_option(argv, capsys):
         main(argv)
     assert info.value.code == 2
     assert argv[0] in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("coarse, sampling", [("strided", False), ("normals", True)])
+def test_benchmark_coarse_option_sets_the_subset(coarse, sampling, monkeypatch):
+    """``--coarse strided``: ours with the evenly strided coarse subset (the A/B of
+    docs/registration.md, "Normal-space sampling of the coarse subset")."""
+    import benchmarks.registration_indoor as bench
+    from estimation.registration import gicp
+
+    monkeypatch.setattr(gicp, "NORMAL_SPACE_SAMPLING", True)  # restored after the test
+    seen = []
+
+    class ReachedError(Exception):
+        pass
+
+    def room_cloud(*args, **kwargs):  # the first thing main does with the option parsed
+        seen.append(gicp.NORMAL_SPACE_SAMPLING)
+        raise ReachedError
+
+    monkeypatch.setattr(bench, "room_cloud", room_cloud)
+    with pytest.raises(ReachedError):
+        bench.main(["--rooms", "tum", "--coarse", coarse])
+    assert seen == [sampling]
 
 
 def test_a_shifted_grid_moves_the_cell_walls():
