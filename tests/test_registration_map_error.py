@@ -126,12 +126,10 @@ def office(centroid_room):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("strided_coarse_subset")
 @pytest.mark.parametrize("seed, right", [(0, True), (1, True), (13, False), (28, False)])
 def test_inside_a_map_only_a_fully_covered_run_is_trusted(office, seed, right, monkeypatch):
     points, labels, target = office
-    # (these starts as the evenly strided coarse subset takes them; half of it over the
-    # normals' directions finds some of them: tests/test_registration_coarse_sampling.py)
-    monkeypatch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)
     source, T_gt, init, d0 = benchmark_start(points, labels, seed)
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
     d = result.diagnostic
@@ -166,6 +164,7 @@ def test_the_dense_sources_bread_over_strided_rows_keeps_the_covariance(room, mo
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("strided_coarse_subset")
 def test_the_wide_kernel_through_the_final_stage_ends_a_dense_slide(office, monkeypatch):
     # a 60k-point half of the office: with the residual-based kernel throughout the final
     # stage (WIDE_FINAL_STAGE False) this start crawls along the room and runs out of
@@ -174,9 +173,6 @@ def test_the_wide_kernel_through_the_final_stage_ends_a_dense_slide(office, monk
     # 1.0 mm. The final stage's extrapolation (EXTRAPOLATE) ends this slide too, without the
     # wide kernel, in fewer iterations; with neither it runs out of them.
     points, labels, target = office
-    # (these starts as the evenly strided coarse subset takes them; half of it over the
-    # normals' directions finds some of them: tests/test_registration_coarse_sampling.py)
-    monkeypatch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)
     source, T_gt, init, d0 = benchmark_start(points, labels, 17, 60000)
     monkeypatch.setattr(gicp, "EXTRAPOLATE", False)
     done, _ = register_ours(source, target, init, (d0, D_FINAL))

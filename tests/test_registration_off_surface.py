@@ -22,7 +22,7 @@ from benchmarks.registration import D_FINAL, register_ours
 from benchmarks.registration_indoor import labelled, voxel_map
 from benchmarks.registration_real import DEFAULT_OCTOMAP, scan_setting
 from estimation.errors import EstimationError
-from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
+from estimation.registration import Registration, RegistrationConfig, pose_error
 from estimation.registration.metrics import offset_about_centroid
 
 
@@ -47,12 +47,10 @@ def test_a_wrong_basin_with_a_small_direction_gap_is_not_trusted(office):
     assert_only_the_rule_flags(result, off)
 
 
+@pytest.mark.usefixtures("strided_coarse_subset")
 @pytest.mark.parametrize("seed", [0, 2])
-def test_the_right_basin_leaves_no_point_just_off_the_map(office, seed, monkeypatch):
+def test_the_right_basin_leaves_no_point_just_off_the_map(office, seed):
     points, labels, target = office
-    # (these starts as the evenly strided coarse subset takes them; half of it over the
-    # normals' directions finds some of them: tests/test_registration_coarse_sampling.py)
-    monkeypatch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)
     source, T_gt, init, d0 = benchmark_start(points, labels, seed, offset="wide")
     result, _ = register_ours(source, target, init, (d0, D_FINAL))
     assert pose_error(result.T, T_gt).t_err_m < 0.005

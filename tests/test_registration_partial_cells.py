@@ -31,9 +31,9 @@ from estimation.registration.metrics import offset_about_centroid
 
 @pytest.fixture(scope="module", autouse=True)
 def strided_coarse_subset():
-    # the starts below as the evenly strided coarse subset takes them (half of it over the
-    # normals' directions finds start 1, 6 mm off but unconverged, and loses start 0:
-    # docs/registration.md, "Normal-space sampling of the coarse subset")
+    # conftest.strided_coarse_subset for the whole module (its starts are module fixtures):
+    # half of the subset over the normals' directions finds start 1, 6 mm off but
+    # unconverged, and loses start 0
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)
         yield

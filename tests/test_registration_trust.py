@@ -76,6 +76,7 @@ def test_a_run_that_did_not_converge_is_not_trusted(office, seed):
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
 
 
+@pytest.mark.usefixtures("strided_coarse_subset")
 @pytest.mark.parametrize("seed", [5, 21])
 def test_the_wide_kernel_while_annealing_ends_the_slow_slides(office, seed, monkeypatch):
     # With the residual-based Cauchy alpha from the first annealing stage (before the tenth
@@ -86,9 +87,6 @@ def test_the_wide_kernel_while_annealing_ends_the_slow_slides(office, seed, monk
     # final stage's extrapolation also ends these slides, and so does one covariance per
     # centroid for seed 21: both off for the negative control.)
     points, labels, target = office
-    # (these starts as the evenly strided coarse subset takes them; half of it over the
-    # normals' directions finds some of them: tests/test_registration_coarse_sampling.py)
-    monkeypatch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)
     source, T_gt, init, d0 = benchmark_start(points, labels, seed)
     done, _ = register_ours(source, target, init, (d0, D_FINAL), max_iterations=60)
     assert done.converged and pose_error(done.T, T_gt).t_err_m < 0.005
