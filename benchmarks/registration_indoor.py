@@ -504,10 +504,6 @@ def main(argv=None) -> int:
                         "twenty-first round; docs/registration.md, 'Normal-space sampling "
                         "of the coarse subset')")
     args = parser.parse_args(argv)
-    if args.coarse == "strided":
-        from estimation.registration import gicp
-
-        gicp.NORMAL_SPACE_SAMPLING = False
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}
     for field in ("map_error", "lattice_noise"):
         value = getattr(args, field)
@@ -540,6 +536,10 @@ def main(argv=None) -> int:
     methods = args.methods.split(",")
     if "open3d-gicp" not in methods or set(methods) - set(METHODS):
         parser.error(f"--methods must be from {', '.join(METHODS)} and include open3d-gicp")
+    if args.coarse == "strided":  # (for this process: the options are all checked)
+        from estimation.registration import gicp
+
+        gicp.NORMAL_SPACE_SAMPLING = False
     out = {}
     print(f"load average at start {os.getloadavg()[0]:.2f}")
     for name in args.rooms.split(","):

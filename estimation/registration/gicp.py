@@ -1738,17 +1738,20 @@ class Registration:
         n_src = len(self.source)
         if not cfg.coarse_points or n_src <= 2 * cfg.coarse_points:
             return None
+
+        def strided(count: int) -> np.ndarray:  # about count evenly strided rows
+            return np.arange(0, n_src, max(n_src // count, 1))
+
         if not NORMAL_SPACE_SAMPLING:
-            return np.arange(0, n_src, n_src // cfg.coarse_points)
-        pool = np.arange(0, n_src, max(n_src // (NORMAL_SPACE_POOL * cfg.coarse_points), 1))
+            return strided(cfg.coarse_points)
+        pool = strided(NORMAL_SPACE_POOL * cfg.coarse_points)
         cov = self.source_cov
         if isinstance(cov, LazyCovariances) and self._prefetching:
             # (half of them on the second thread; the final stage matches every row too)
             cov.fill_beside(pool, _reverse_executor().submit)
-        normals = covariance_normals(cov[pool])
         half = cfg.coarse_points // 2
-        return np.union1d(np.arange(0, n_src, n_src // half),
-                          pool[normal_space_rows(normals, half)])
+        return np.union1d(strided(half),
+                          pool[normal_space_rows(covariance_normals(cov[pool]), half)])
 
     def solution_terms(self, T: np.ndarray, d_max: float,
                        corr: Correspondences | None = None) -> SolutionTerms | None:
