@@ -779,6 +779,12 @@ COARSE_FIRST_STEP = 1e-2
 # taken over this many evenly strided rows (150k-point room scans: 0.3-0.5 -> 0.1-0.2 s;
 # the point-noise covariance 0.99-1.32x the full one's)
 REASSOCIATION_ROWS = 30000
+# the re-matched bread's eigenvalues relative to A are limited to [REASSOCIATION_FLOOR, 1]:
+# at most 100x the fixed-association variance along a direction. 0.25 (16x) held the real
+# rooms' flattest directions back (ICL-NUIM, 15k-point halves: 3 of 30 starts at 0.12-0.19,
+# NEES 23-33; docs/registration.md, "The re-matched bread's floor"); 0.1 and 0.05 gave the
+# same NEES there, and the i.i.d. scenes never reach 0.25
+REASSOCIATION_FLOOR = 0.1
 # Semantic-ICP's class candidates are cached from smaller steps: during the annealing the
 # coarse rows still move a centimetre or more an iteration and most of them (2000-2700 of
 # 3000 on the ICL office) were re-queried with eight candidates each, dearer than one plain
@@ -2223,10 +2229,11 @@ class Registration:
         piecewise smooth in ``T``, so its derivative is taken by forward differences over
         ``reassociation_step`` standard deviations of the fixed-association covariance
         ``cov`` per axis (the scale at which the estimate actually varies). The result is
-        symmetrised, and its eigenvalues relative to ``A`` are limited to [0.25, 1]:
-        re-matching to nearer neighbours lowers the cost (the matched cost is the lower
-        envelope of the fixed-association costs), so it cannot add curvature, and the lower
-        limit bounds the inflation (16x in variance) where the differences are noisy.
+        symmetrised, and its eigenvalues relative to ``A`` are limited to
+        [REASSOCIATION_FLOOR, 1]: re-matching to nearer neighbours lowers the cost (the
+        matched cost is the lower envelope of the fixed-association costs), so it cannot add
+        curvature, and the lower limit bounds the inflation (100x in variance) where the
+        differences are noisy.
         """
         A = sol.A
         steps = self.config.reassociation_step * np.sqrt(np.maximum(np.diag(cov), 1e-24))
@@ -2273,7 +2280,7 @@ class Registration:
             if sums[i] is None:
                 return A
             D[:, i] = scale * (sums[i] - F0) / steps[i]
-        # relative to A: A = L L^T, S = L^-1 D L^-T, eigenvalues limited to [0.25, 1]
+        # relative to A: A = L L^T, S = L^-1 D L^-T, eigenvalues limited to [floor, 1]
         lam_A, V_A = np.linalg.eigh(A)
         if lam_A.min() <= 0.0:
             return A
@@ -2281,7 +2288,7 @@ class Registration:
         L_inv = (V_A / np.sqrt(lam_A)).T
         S = L_inv @ (0.5 * (D + D.T)) @ L_inv.T
         lam, U = np.linalg.eigh(0.5 * (S + S.T))
-        lam = np.clip(lam, 0.25, 1.0)
+        lam = np.clip(lam, REASSOCIATION_FLOOR, 1.0)
         return L @ (U * lam) @ U.T @ L.T
 
     @property
