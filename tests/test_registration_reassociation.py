@@ -12,7 +12,12 @@ from test_registration_model_error import voxel_map_pair
 
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig
-from estimation.registration.gicp import CAUCHY_TUNING, REASSOCIATION_FLOOR, loewner_max
+from estimation.registration.gicp import (
+    CAUCHY_TUNING,
+    REASSOCIATION_FLOOR,
+    bread_within,
+    loewner_max,
+)
 
 
 def _solution(reg: Registration, result):
@@ -56,6 +61,27 @@ def test_reassociation_bread_is_bounded_by_the_hessian():
     relative = np.linalg.eigvalsh(L_inv @ bread @ L_inv.T)
     assert relative.min() >= REASSOCIATION_FLOOR - 1e-9 and relative.max() <= 1.0 + 1e-9
     assert relative.min() < 0.95  # and it did change something at 3 cm
+
+
+def test_bread_within_limits_relative_eigenvalues_and_composes():
+    rng = np.random.default_rng(5)
+    M = rng.normal(size=(6, 6))
+    A = M @ M.T + 6 * np.eye(6)
+    L = np.linalg.cholesky(A)
+    # a derivative with relative eigenvalues -0.3 ... 1.4 (noisy, and beyond both limits)
+    Q = np.linalg.qr(rng.normal(size=(6, 6)))[0]
+    D = L @ Q @ np.diag([-0.3, 0.05, 0.15, 0.5, 0.9, 1.4]) @ Q.T @ L.T
+    L_inv = np.linalg.inv(L)
+    for floor, expected in ((0.1, [0.1, 0.1, 0.15, 0.5, 0.9, 1.0]),
+                            (0.25, [0.25, 0.25, 0.25, 0.5, 0.9, 1.0])):
+        bread = bread_within(A, D, floor)
+        np.testing.assert_allclose(np.linalg.eigvalsh(L_inv @ bread @ L_inv.T), expected,
+                                   atol=1e-9)
+    # the reverse's step and the direction gap re-limit the covariance's bread to their floor
+    np.testing.assert_allclose(bread_within(A, bread_within(A, D, 0.1), 0.25),
+                               bread_within(A, D, 0.25), atol=1e-9)
+    # not positive definite: A itself
+    np.testing.assert_array_equal(bread_within(-A, D, 0.1), -A)
 
 
 def test_fixed_association_option_gives_the_earlier_covariance():

@@ -785,6 +785,11 @@ REASSOCIATION_ROWS = 30000
 # NEES 23-33; docs/registration.md, "The re-matched bread's floor"); 0.1 and 0.05 gave the
 # same NEES there, and the i.i.d. scenes never reach 0.25
 REASSOCIATION_FLOOR = 0.1
+# the reverse direction's Newton step (Registration.reverse_terms) and the direction gap's
+# covariance (Registration._symmetric) keep the breads at the earlier floor: trust_gap was
+# measured with it. With the covariance's floor there too, an ICL-NUIM part 0.59 m off had
+# a gap of 32 instead of 42, under the threshold (tests/test_registration_partial_cells.py)
+REVERSE_BREAD_FLOOR = 0.25
 # Semantic-ICP's class candidates are cached from smaller steps: during the annealing the
 # coarse rows still move a centimetre or more an iteration and most of them (2000-2700 of
 # 3000 on the ICL office) were re-queried with eight candidates each, dearer than one plain
@@ -1922,14 +1927,14 @@ class Registration:
                 reverse_terms = reverse.result()  # (waited for when unused, too)
                 if not unconstrained:
                     T, cov, diagnostic = self._symmetric(T, cov, diagnostic, sol, A_noise,
-                                                         block, reverse_terms)
+                                                         block, reverse_terms, sol.A)
             elif nearest is not None:
                 T_near, sol_near, block_near, reverse_near = nearest
                 reverse_terms = reverse_near.result()
                 if not unconstrained and reverse_terms is not None:
                     # (the re-matched bread of the cells' solution: the same basin, mm away)
                     gap = self._symmetric(T_near, cov, diagnostic, sol_near, A_noise,
-                                          block_near, reverse_terms)[2].direction_gap
+                                          block_near, reverse_terms, sol.A)[2].direction_gap
                     diagnostic = replace(diagnostic, direction_gap=gap)
         inliers = len(corr)
         if unconstrained:
@@ -2164,13 +2169,15 @@ class Registration:
             return None  # the reverse leaves a direction unconstrained: no Newton step
         A_noise = sol.A if self.config.reassociation_step is None else \
             rev.reassociation_hessian(T_inv, d_max, sol, fixed)
-        eta = -np.linalg.solve(A_noise, sol.scores.sum(axis=0))
+        # (the step with the bread at the earlier floor: see REVERSE_BREAD_FLOOR)
+        eta = -np.linalg.solve(bread_within(sol.A, A_noise, REVERSE_BREAD_FLOOR),
+                               sol.scores.sum(axis=0))
         return T_inv @ gtsam.Pose3.Expmap(eta).matrix(), sol, A_noise
 
     def _symmetric(self, T: np.ndarray, cov: np.ndarray, diagnostic: CovarianceDiagnostic,
                    sol_f: SolutionTerms, A_nf: np.ndarray, block: float,
-                   reverse: tuple[np.ndarray, SolutionTerms, np.ndarray] | None
-                   ) -> tuple[np.ndarray, np.ndarray, CovarianceDiagnostic]:
+                   reverse: tuple[np.ndarray, SolutionTerms, np.ndarray] | None,
+                   A_f: np.ndarray) -> tuple[np.ndarray, np.ndarray, CovarianceDiagnostic]:
         """Return (T, covariance, diagnostic) of the midpoint of both registration directions.
 
         Nearest-neighbour matching is not symmetric: on real scans the estimate moves when
@@ -2184,7 +2191,9 @@ class Registration:
         linear map ``[I/2, -Ad(T_rev)/2]``; with the fixed-association and the re-matched
         breads, the Loewner maximum of the two, as for one direction. ``sol_f``, ``A_nf`` and
         ``block`` are the forward direction's solution terms, re-matched bread and block edge;
-        ``reverse`` is what :meth:`reverse_terms` returned for ``T``.
+        ``reverse`` is what :meth:`reverse_terms` returned for ``T``; ``A_f`` the Hessian the
+        forward bread was taken against (the direction gap's breads are limited relative to
+        it, and the reverse's to its own, at ``REVERSE_BREAD_FLOOR``).
         """
         if reverse is None:
             return T, cov, diagnostic
@@ -2211,7 +2220,11 @@ class Registration:
         mid = np.hstack([0.5 * I6, 0.5 * M])
         gap = np.hstack([I6, -M])
         cov_mid = loewner_max(stacked(sol_f.A, sol_r.A, mid), stacked(A_nf, A_nr, mid))
-        cov_gap = loewner_max(stacked(sol_f.A, sol_r.A, gap), stacked(A_nf, A_nr, gap))
+        # (the gap's test keeps the re-matched breads at REVERSE_BREAD_FLOOR, the floor its
+        # threshold trust_gap was measured with)
+        cov_gap = loewner_max(stacked(sol_f.A, sol_r.A, gap),
+                              stacked(bread_within(A_f, A_nf, REVERSE_BREAD_FLOOR),
+                                      bread_within(sol_r.A, A_nr, REVERSE_BREAD_FLOOR), gap))
         cov_mid = 0.5 * (cov_mid + cov_mid.T) + np.eye(6) * 1e-12
         asym = float(delta @ np.linalg.solve(cov_gap + np.eye(6) * 1e-12, delta))
         return T_mid, cov_mid, replace(diagnostic, symmetric=True, direction_gap=asym)
@@ -2280,16 +2293,7 @@ class Registration:
             if sums[i] is None:
                 return A
             D[:, i] = scale * (sums[i] - F0) / steps[i]
-        # relative to A: A = L L^T, S = L^-1 D L^-T, eigenvalues limited to [floor, 1]
-        lam_A, V_A = np.linalg.eigh(A)
-        if lam_A.min() <= 0.0:
-            return A
-        L = V_A * np.sqrt(lam_A)
-        L_inv = (V_A / np.sqrt(lam_A)).T
-        S = L_inv @ (0.5 * (D + D.T)) @ L_inv.T
-        lam, U = np.linalg.eigh(0.5 * (S + S.T))
-        lam = np.clip(lam, REASSOCIATION_FLOOR, 1.0)
-        return L @ (U * lam) @ U.T @ L.T
+        return bread_within(A, D, REASSOCIATION_FLOOR)
 
     @property
     def quantisation_pitch(self) -> float | None:
@@ -2728,6 +2732,21 @@ def loewner_max(P: np.ndarray, Q: np.ndarray) -> np.ndarray:
     W_inv = np.linalg.inv(W)
     R = W_inv.T @ (U * np.maximum(mu, 1.0)) @ U.T @ W_inv
     return 0.5 * (R + R.T)
+
+
+def bread_within(A: np.ndarray, D: np.ndarray, floor: float) -> np.ndarray:
+    """Return ``D`` (symmetrised) with its eigenvalues relative to the positive definite
+    ``A`` limited to [``floor``, 1] (``A`` itself if it is not positive definite): with
+    ``A = L L^T`` and ``S = L^-1 D L^-T``, the result is ``L clip(S) L^T``. Limiting a
+    result again to a higher floor gives what that floor gives from ``D``."""
+    lam_A, V_A = np.linalg.eigh(A)
+    if lam_A.min() <= 0.0:
+        return A
+    L = V_A * np.sqrt(lam_A)
+    L_inv = (V_A / np.sqrt(lam_A)).T
+    S = L_inv @ (0.5 * (D + D.T)) @ L_inv.T
+    lam, U = np.linalg.eigh(0.5 * (S + S.T))
+    return L @ (U * np.clip(lam, floor, 1.0)) @ U.T @ L.T
 
 
 def covariance_from_information(H: np.ndarray, B: np.ndarray | None, scale: float,
