@@ -785,11 +785,12 @@ REASSOCIATION_ROWS = 30000
 # NEES 23-33; docs/registration.md, "The re-matched bread's floor"); 0.1 and 0.05 gave the
 # same NEES there, and the i.i.d. scenes never reach 0.25
 REASSOCIATION_FLOOR = 0.1
-# the reverse direction's Newton step (Registration.reverse_terms) and the direction gap's
-# covariance (Registration._symmetric) keep the breads at the earlier floor: trust_gap was
-# measured with it. With the covariance's floor there too, an ICL-NUIM part 0.59 m off had
-# a gap of 32 instead of 42, under the threshold (tests/test_registration_partial_cells.py)
-REVERSE_BREAD_FLOOR = 0.25
+# the symmetric estimate's uses of the breads keep the earlier floor: the reverse direction's
+# Newton step (Registration.reverse_terms) and the direction gap's covariance
+# (Registration._symmetric, both directions' breads). trust_gap was measured with it; with
+# the covariance's floor there too, an ICL-NUIM part 0.59 m off had a gap of 32 instead of
+# 42, under the threshold (tests/test_registration_partial_cells.py)
+SYMMETRIC_BREAD_FLOOR = 0.25
 # Semantic-ICP's class candidates are cached from smaller steps: during the annealing the
 # coarse rows still move a centimetre or more an iteration and most of them (2000-2700 of
 # 3000 on the ICL office) were re-queried with eight candidates each, dearer than one plain
@@ -2169,8 +2170,8 @@ class Registration:
             return None  # the reverse leaves a direction unconstrained: no Newton step
         A_noise = sol.A if self.config.reassociation_step is None else \
             rev.reassociation_hessian(T_inv, d_max, sol, fixed)
-        # (the step with the bread at the earlier floor: see REVERSE_BREAD_FLOOR)
-        eta = -np.linalg.solve(bread_within(sol.A, A_noise, REVERSE_BREAD_FLOOR),
+        # (the step with the bread at the earlier floor: see SYMMETRIC_BREAD_FLOOR)
+        eta = -np.linalg.solve(bread_within(sol.A, A_noise, SYMMETRIC_BREAD_FLOOR),
                                sol.scores.sum(axis=0))
         return T_inv @ gtsam.Pose3.Expmap(eta).matrix(), sol, A_noise
 
@@ -2193,7 +2194,7 @@ class Registration:
         ``block`` are the forward direction's solution terms, re-matched bread and block edge;
         ``reverse`` is what :meth:`reverse_terms` returned for ``T``; ``A_f`` the Hessian the
         forward bread was taken against (the direction gap's breads are limited relative to
-        it, and the reverse's to its own, at ``REVERSE_BREAD_FLOOR``).
+        it, and the reverse's to its own, at ``SYMMETRIC_BREAD_FLOOR``).
         """
         if reverse is None:
             return T, cov, diagnostic
@@ -2220,11 +2221,11 @@ class Registration:
         mid = np.hstack([0.5 * I6, 0.5 * M])
         gap = np.hstack([I6, -M])
         cov_mid = loewner_max(stacked(sol_f.A, sol_r.A, mid), stacked(A_nf, A_nr, mid))
-        # (the gap's test keeps the re-matched breads at REVERSE_BREAD_FLOOR, the floor its
+        # (the gap's test keeps the re-matched breads at SYMMETRIC_BREAD_FLOOR, the floor its
         # threshold trust_gap was measured with)
         cov_gap = loewner_max(stacked(sol_f.A, sol_r.A, gap),
-                              stacked(bread_within(A_f, A_nf, REVERSE_BREAD_FLOOR),
-                                      bread_within(sol_r.A, A_nr, REVERSE_BREAD_FLOOR), gap))
+                              stacked(bread_within(A_f, A_nf, SYMMETRIC_BREAD_FLOOR),
+                                      bread_within(sol_r.A, A_nr, SYMMETRIC_BREAD_FLOOR), gap))
         cov_mid = 0.5 * (cov_mid + cov_mid.T) + np.eye(6) * 1e-12
         asym = float(delta @ np.linalg.solve(cov_gap + np.eye(6) * 1e-12, delta))
         return T_mid, cov_mid, replace(diagnostic, symmetric=True, direction_gap=asym)
