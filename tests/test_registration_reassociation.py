@@ -8,10 +8,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from test_registration import make_pair, one_hot
+from test_registration_coarse_sampling import icl_half_room_runs
 from test_registration_model_error import voxel_map_pair
 
+from estimation.covariance import ConsistencyCheck, check_consistency, nees
 from estimation.errors import EstimationError
-from estimation.registration import Registration, RegistrationConfig
+from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
 from estimation.registration.gicp import (
     CAUCHY_TUNING,
     REASSOCIATION_FLOOR,
@@ -177,31 +179,19 @@ def test_rematched_bread_covers_the_flat_directions_of_real_half_rooms(centroid_
     # to a narrow slice of the room have directions the matched cost barely constrains; the
     # re-matched bread finds them (eigenvalues 0.12-0.19 relative to A) and the floor of 0.25
     # held them back. Measured mean NEES 6.60 with the floor at 0.1, 8.49 at 0.25 (band
-    # [4.83, 7.31]); docs/registration.md, "The re-matched bread's floor"
-    from benchmarks.registration import register_ours
-    from benchmarks.registration_indoor import D_FINAL, OFFSETS, half_room_source
-    from estimation.covariance import check_consistency
-    from estimation.registration import gicp, pose_error
-    from estimation.registration.metrics import offset_about_centroid
-
-    points, labels, target = centroid_room("icl", 5)
-    metres, degrees, d0 = OFFSETS["small"]
-
-    def nees() -> np.ndarray:
-        out = []
-        for seed in range(30):
-            rng = np.random.default_rng(seed)
-            source, T_gt = half_room_source(points, labels, rng)
-            init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
-            result, _ = register_ours(source, target, init, (d0, D_FINAL))
+    # [4.82, 7.30]); docs/registration.md, "The re-matched bread's floor"
+    def check() -> ConsistencyCheck:
+        errors, covariances = [], []
+        for result, T_gt in icl_half_room_runs(centroid_room, range(30)):
             x = pose_error(result.T, T_gt).tangent
             assert result.converged and np.linalg.norm(x[3:]) < 0.02  # every start found
-            out.append(x @ np.linalg.solve(result.covariance, x))
-        return np.array(out)
+            errors.append(x)
+            covariances.append(result.covariance)
+        return check_consistency(nees(np.array(errors), np.array(covariances)), dof=6)
 
-    check = check_consistency(nees(), dof=6)
-    assert check.passed, check
+    floor = check()
+    assert floor.passed, floor
     # the earlier floor: over-confident on the same starts (negative control)
     monkeypatch.setattr(gicp, "REASSOCIATION_FLOOR", 0.25)
-    control = check_consistency(nees(), dof=6)
-    assert not control.passed and control.mean > check.mean, control
+    control = check()
+    assert not control.passed and control.mean > floor.mean, control
