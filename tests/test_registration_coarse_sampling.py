@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from benchmarks.registration import register_ours
-from benchmarks.registration_indoor import D_FINAL, OFFSETS, half_room_source
+from benchmarks.registration_indoor import D_FINAL, OFFSETS, SOURCE_POINTS, half_room_source
 from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
 from estimation.registration.gicp import (
     NORMAL_BINS,
@@ -87,17 +87,25 @@ def test_the_coarse_stage_matches_the_normal_space_rows(monkeypatch):
 STARTS = (13, 19, 22, 28)
 
 
-def icl_half_room_runs(centroid_room, seeds):
-    """Yield (ours' result, T_target_source) of the indoor benchmark's default cell on the
-    ICL-NUIM office (every 5th frame): a 15k-point half with 5 mm noise against the room's
-    3 cm centroid map, from the small offset, one trial per seed."""
+def icl_half_room_starts(centroid_room, seeds, n: int = SOURCE_POINTS):
+    """Yield (source, map, initial guess, T_target_source, stages) of the indoor benchmark's
+    cell on the ICL-NUIM office (every 5th frame): a half of ``n`` points (0: every point, a
+    raw half) with 5 mm noise and 10 % wrong labels against the room's 3 cm centroid map, from
+    the small offset, one trial per seed."""
     points, labels, target = centroid_room("icl", 5)
     metres, degrees, d0 = OFFSETS["small"]
     for seed in seeds:
         rng = np.random.default_rng(seed)
-        source, T_gt = half_room_source(points, labels, rng)
+        source, T_gt = half_room_source(points, labels, rng, n)
         init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
-        yield register_ours(source, target, init, (d0, D_FINAL))[0], T_gt
+        yield source, target, init, T_gt, (d0, D_FINAL)
+
+
+def icl_half_room_runs(centroid_room, seeds):
+    """Yield (ours' result, T_target_source) of the indoor benchmark's default cell on the
+    ICL-NUIM office (:func:`icl_half_room_starts`, 15k points)."""
+    for source, target, init, T_gt, stages in icl_half_room_starts(centroid_room, seeds):
+        yield register_ours(source, target, init, stages)[0], T_gt
 
 
 @pytest.mark.slow

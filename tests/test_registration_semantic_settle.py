@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_registration import make_pair, one_hot
+from test_registration_coarse_sampling import icl_half_room_starts
 
 from benchmarks.registration import register_ours
-from benchmarks.registration_indoor import D_FINAL, OFFSETS, half_room_source
 from estimation.registration import RegistrationConfig, gicp, pose_error, semantic_icp
-from estimation.registration.metrics import offset_about_centroid
-from tests.test_registration import make_pair, one_hot
 
 
 def estep_schedule(monkeypatch, config: RegistrationConfig, seed: int = 4):
@@ -77,18 +76,13 @@ def test_wrong_labels_do_not_pull_semantic_icp_along_the_weak_axis(centroid_room
     # ICL-NUIM's office, raw halves with 10 % wrong labels, the benchmark's small offset: with
     # the paper's scores up to the final stage, Semantic-ICP ended 0.5-1.1 mm from GICP-SE(3)
     # along the map's z axis (few surfaces face it); settled with the posterior, within 0.1 mm
-    points, labels, target = centroid_room("icl", 5)
-    metres, degrees, d0 = OFFSETS["small"]
     gap = {True: [], False: []}
-    for seed in (4, 9):
-        rng = np.random.default_rng(seed)
-        source, T_gt = half_room_source(points, labels, rng, 0)
-        init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
+    for source, target, init, T_gt, stages in icl_half_room_starts(centroid_room, (4, 9), 0):
         c = T_gt[:3, :3] @ source.points.mean(axis=0) + T_gt[:3, 3]
-        geometric, _ = register_ours(source, target, init, (d0, D_FINAL))
+        geometric, _ = register_ours(source, target, init, stages)
         for settle in (True, False):
             monkeypatch.setattr(gicp, "SETTLE_WITH_POSTERIOR", settle)
-            sem, _ = register_ours(source, target, init, (d0, D_FINAL), semantic=True)
+            sem, _ = register_ours(source, target, init, stages, semantic=True)
             assert sem.converged, sem.reason
             gap[settle].append(np.linalg.norm(at_centroid(sem.T, geometric.T, c)))
             if settle:

@@ -943,7 +943,6 @@ class Registration:
         self._class_cache_owner: NeighbourCache | None = None
         self._sigma: float | None = None  # Semantic-ICP's EM residual sigma, reset by run()
         self._settled = False  # the last annealing stage runs the posterior E-step (run())
-        self._settles = False
         # same_voxel's grid, decided per run(): 0 = not yet, 1 = at convergence
         self._grid: VoxelGrid | int | None = 0
         self._nearest = None
@@ -1626,8 +1625,8 @@ class Registration:
         self._settled = False
         # (the posterior settles the last annealing stage: Semantic-ICP's posterior E-step,
         # stages run to convergence)
-        self._settles = (SETTLE_WITH_POSTERIOR and self.semantic and cfg.anneal == "convergence"
-                         and cfg.semantic_estep == "posterior")
+        settles = (SETTLE_WITH_POSTERIOR and self.semantic and cfg.anneal == "convergence"
+                   and cfg.semantic_estep == "posterior")
         self._grid = 0
         self._alpha = cfg.cauchy_alpha
         self._forward_cache = self._reverse_cache = None
@@ -1725,7 +1724,7 @@ class Registration:
                 gtsam.Pose3(T_prev).between(gtsam.Pose3(T_new)))) < cfg.tolerance
             stage_iterations += 1
             if annealing:
-                if (self._settles and not self._settled and (step < cfg.tolerance or two_cycle)
+                if (settles and not self._settled and (step < cfg.tolerance or two_cycle)
                         and not coarse_first and d * cfg.decay <= d_final * (1 + 1e-9)):
                     # Semantic-ICP's last annealing stage has converged with the paper's
                     # scores: it goes on with the posterior E-step before the final stage
