@@ -136,10 +136,10 @@ def labelled(points: np.ndarray, labels: np.ndarray) -> SemanticCloud:
     return SemanticCloud.from_labels(points, labels, N_CLASSES)
 
 
-def room_cloud(name: str, step: int = 5, data: Path = DATA,
-               start: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def room_cloud(name: str, step: int = 5, data: Path = DATA, start: int = 0,
+               stop: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Return (points (N, 3), geometric class labels (N,)) of the room ``name`` fused from
-    its frames ``start``, ``start + step``, ..."""
+    its frames ``start``, ``start + step``, ... before ``stop`` (default: the last)."""
     from perception.rgbd import CameraIntrinsics, TumRgbdSequence, backproject, voxel_filter
 
     if name == "scan":
@@ -148,7 +148,7 @@ def room_cloud(name: str, step: int = 5, data: Path = DATA,
     intr = CameraIntrinsics(fx, fy, cx, cy, 640, 480, 5000.0)
     seq = TumRgbdSequence(data / folder, intr, distortion=distortion)
     parts = []
-    for index in range(start, len(seq), step):
+    for index in range(start, len(seq) if stop is None else min(stop, len(seq)), step):
         frame = seq[index]
         if frame.T_world_camera_gt is None:
             continue
@@ -459,6 +459,9 @@ def main(argv=None) -> int:
                         "started at the final d_max)")
     parser.add_argument("--trials", type=int, default=30)
     parser.add_argument("--step", type=int, default=5, help="every STEP-th frame makes the room")
+    parser.add_argument("--frames", default=None, metavar="START:STOP",
+                        help="the RGB-D rooms fused from their frames START .. STOP - 1 only "
+                        "(another view of the room from the same sequence; default: all)")
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--setting", default="half", choices=("half", "part"),
                         help="half: a half against the room's map; part: a part against the "
@@ -525,6 +528,14 @@ def main(argv=None) -> int:
         args.noise = 0.0 if args.source_frames == "other" else SOURCE_NOISE
     if not (np.isfinite(args.noise) and args.noise >= 0.0):
         parser.error(f"--noise must be a finite number >= 0, got {args.noise}")
+    start, stop = 0, None
+    if args.frames is not None:
+        try:
+            start, stop = (int(v) for v in args.frames.split(":"))
+        except ValueError:
+            parser.error(f"--frames must be START:STOP (frame indices), got {args.frames!r}")
+        if not 0 <= start < stop or "scan" in args.rooms:
+            parser.error("--frames needs 0 <= START < STOP and RGB-D rooms (tum, icl)")
     if args.source_points < 0:
         parser.error("--source-points must be 0 (all) or positive")
     if args.classes < N_GEOMETRIC:
@@ -544,8 +555,10 @@ def main(argv=None) -> int:
     print(f"load average at start {os.getloadavg()[0]:.2f}")
     for name in args.rooms.split(","):
         other = args.source_frames == "other"
-        points, labels = room_cloud(name, 2 * args.step if other else args.step)
-        source_cloud = room_cloud(name, 2 * args.step, start=args.step) if other else None
+        points, labels = room_cloud(name, 2 * args.step if other else args.step, start=start,
+                                    stop=stop)
+        source_cloud = (room_cloud(name, 2 * args.step, start=start + args.step, stop=stop)
+                        if other else None)
         if N_CLASSES > N_GEOMETRIC:
             labels = object_labels(points, labels, N_CLASSES)
             if other:

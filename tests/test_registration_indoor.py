@@ -28,6 +28,7 @@ from benchmarks.registration_indoor import (
     labelled,
     phase_covariance,
     phase_maps,
+    room_cloud,
     room_part_source,
     voxel_map,
 )
@@ -283,7 +284,8 @@ def test_noise_zero_gives_the_maps_own_points():
                                   ["--rooms", "tum,kitchen"], ["--noise", "-0.001"],
                                   ["--noise", "nan"],
                                   ["--noise", "0.005", "--source-frames", "other"],
-                                  ["--coarse", "random"]])
+                                  ["--coarse", "random"], ["--frames", "50"],
+                                  ["--frames", "50:10"], ["--frames", "0:50", "--rooms", "scan"]])
 def test_benchmark_refuses_a_bad_option(argv, capsys):
     from benchmarks.registration_indoor import main
 
@@ -314,6 +316,34 @@ def test_benchmark_coarse_option_sets_the_subset(coarse, sampling, monkeypatch):
     with pytest.raises(ReachedError):
         bench.main(["--rooms", "tum", "--coarse", coarse])
     assert seen == [sampling]
+
+
+def test_frames_option_fuses_the_room_from_those_frames_only(monkeypatch):
+    """``--frames START:STOP``: the room (and with ``--source-frames other`` the halves' scan)
+    from frames START .. STOP - 1: another view of the room from the same sequence. Checked on
+    ICL-NUIM: one frame of every 50 before 50 is frame 0 alone."""
+    import benchmarks.registration_indoor as bench
+
+    first, _ = room_cloud("icl", step=50, stop=50)
+    both, _ = room_cloud("icl", step=50)
+    assert 0 < len(first) < len(both)
+    only_first, _ = room_cloud("icl", step=100)
+    np.testing.assert_array_equal(first, only_first)
+    seen = []
+
+    class ReachedError(Exception):
+        pass
+
+    def fake_room_cloud(name, step, **kwargs):
+        seen.append((step, kwargs))
+        if len(seen) == 2:
+            raise ReachedError
+        return np.zeros((1, 3)), np.zeros(1, dtype=np.int64)
+
+    monkeypatch.setattr(bench, "room_cloud", fake_room_cloud)
+    with pytest.raises(ReachedError):
+        bench.main(["--rooms", "tum", "--frames", "30:90", "--source-frames", "other"])
+    assert seen == [(10, {"start": 30, "stop": 90}), (10, {"start": 35, "stop": 90})]
 
 
 def test_a_shifted_grid_moves_the_cell_walls():
