@@ -76,19 +76,20 @@ def rng() -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def centroid_room():
-    """Return ``get(name, step)``: (points, labels, the 3 cm voxel-centroid map) of a real
-    RGB-D room as benchmarks/registration_indoor.py fuses it, built once per session (each
-    takes seconds; several test modules register against the same rooms)."""
+    """Return ``get(name, step, start=0, stop=None)``: (points, labels, the 3 cm voxel-centroid
+    map) of a real RGB-D room as benchmarks/registration_indoor.py fuses it (from frames
+    ``start`` .. ``stop`` - 1), built once per session (each takes seconds; several test
+    modules register against the same rooms)."""
     from benchmarks.registration_indoor import labelled, room_cloud, voxel_map
 
     rooms = {}
 
-    def get(name: str, step: int):
-        if (name, step) not in rooms:
-            points, labels = room_cloud(name, step=step)
-            rooms[name, step] = (points, labels,
-                                 labelled(*voxel_map(points, labels, "centroids")))
-        return rooms[name, step]
+    def get(name: str, step: int, start: int = 0, stop: int | None = None):
+        key = name, step, start, stop  # (frames start .. stop - 1; stop None: the last)
+        if key not in rooms:
+            points, labels = room_cloud(name, step=step, start=start, stop=stop)
+            rooms[key] = (points, labels, labelled(*voxel_map(points, labels, "centroids")))
+        return rooms[key]
 
     return get
 

@@ -123,7 +123,7 @@ def test_extrapolation_adds_the_rest_of_a_straight_creep_and_nothing_else():
     longer step or the first step of a stage add nothing; the jump is capped."""
     import gtsam
 
-    from estimation.registration.gicp import EXTRAPOLATE_MAX, _extrapolated
+    from estimation.registration.gicp import EXTRAPOLATE_MAX, _creep_ratio, _extrapolated
 
     T = gtsam.Pose3(gtsam.Rot3.Rodrigues(0.1, 0.2, 0.3), [1.0, 2.0, 3.0]).matrix()
     last = np.array([1e-3, 0, 0, 2e-3, 1e-3, 0])
@@ -131,13 +131,15 @@ def test_extrapolation_adds_the_rest_of_a_straight_creep_and_nothing_else():
     def stepped(xi):
         return (gtsam.Pose3(T) * gtsam.Pose3.Expmap(xi)).matrix()
 
-    jumped, remembered = _extrapolated(stepped(0.75 * last), 0.75 * last, last)
+    assert _creep_ratio(0.75 * last, last) == pytest.approx(0.75)
+    jumped, remembered = _extrapolated(stepped(0.75 * last), 0.75 * last, 0.75)
     np.testing.assert_allclose(jumped, stepped(0.75 * last * 4), atol=1e-12)
     assert remembered is None
     for xi, previous in ((0.75 * last, None), (1.2 * last, last),
                          (np.array([0, 1e-3, 0, -2e-3, 1e-3, 0]), last)):
-        same, remembered = _extrapolated(stepped(xi), xi, previous)
+        assert _creep_ratio(xi, previous) is None
+        same, remembered = _extrapolated(stepped(xi), xi, None)
         np.testing.assert_array_equal(same, stepped(xi))
         np.testing.assert_allclose(remembered, xi, atol=1e-15)
-    capped, _ = _extrapolated(stepped(0.99 * last), 0.99 * last, last)
+    capped, _ = _extrapolated(stepped(0.99 * last), 0.99 * last, _creep_ratio(0.99 * last, last))
     np.testing.assert_allclose(capped, stepped(0.99 * last * (1 + EXTRAPOLATE_MAX)), atol=1e-12)

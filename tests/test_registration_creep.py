@@ -1,0 +1,51 @@
+"""The final stage converges where its creep ends, not where its steps get short (issue 14,
+twenty-fourth round).
+
+Along a weakly held direction ICP creeps: each step's correspondences lag the pose, and the
+steps shrink by a ratio rho near 1. A step below ``tolerance`` then still leaves about
+``step * rho / (1 - rho)`` to go. ``gicp.CONVERGE_ON_REMAINDER`` lets such a step end the
+final stage only where that remainder is below ``tolerance`` too (docs/registration.md, "The
+creep's remainder").
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from benchmarks.registration import D_FINAL, OFFSETS, register_ours
+from benchmarks.registration_indoor import half_room_source
+from estimation.registration import Registration, RegistrationConfig, gicp
+from estimation.registration.metrics import offset_about_centroid
+
+
+@pytest.mark.slow
+def test_a_raw_half_converges_at_its_fixed_point_from_every_start(centroid_room, monkeypatch):
+    # ICL-NUIM's office fused from frames 50-99 (another view than the tests' other rooms),
+    # the raw half of seed 13: along the room's z few surfaces hold it, and the final stage
+    # creeps with rho 0.91-0.95. Measured (one-off, 5 starts): the ends' spread along z
+    # 0.64 -> 0.12 mm with the rule, their mean distance from the fixed point 0.58 -> 0.13 mm.
+    points, labels, target = centroid_room("icl", 5, 50, 100)
+    rng = np.random.default_rng(13)
+    source, T_gt = half_room_source(points, labels, rng, 0)
+    centre = T_gt[:3, :3] @ source.points.mean(axis=0) + T_gt[:3, 3]
+
+    def moved(T):  # the source centroid's displacement from the truth (mm)
+        return (T @ np.linalg.inv(T_gt) @ np.r_[centre, 1.0])[:3] * 1e3 - centre * 1e3
+
+    # the fixed point: from the truth with a tolerance a hundred times tighter
+    fixed = moved(Registration(source.points, target.points, RegistrationConfig(
+        max_correspondence_distance=D_FINAL, tolerance=1e-6, max_iterations=300)).run(T_gt).T)
+    metres, degrees, d0 = OFFSETS["small"]
+    starts = [T_gt @ offset_about_centroid(np.random.default_rng([13, j, 5]),
+                                           source.points.mean(axis=0), metres, degrees)
+              for j in (1, 4)]
+
+    def ends():
+        return [moved(register_ours(source, target, init, (d0, D_FINAL))[0].T)
+                for init in starts]
+
+    for end in ends():  # measured 0.15 and 0.21 mm
+        assert np.linalg.norm(end - fixed) < 0.3, (end, fixed)
+    monkeypatch.setattr(gicp, "CONVERGE_ON_REMAINDER", False)
+    for end in ends():  # measured 1.21 and 0.85 mm: stopped on the way
+        assert np.linalg.norm(end - fixed) > 0.6, (end, fixed)
