@@ -88,6 +88,8 @@ def test_wrong_labels_do_not_pull_semantic_icp_along_the_weak_axis(centroid_room
             if settle:
                 assert (np.linalg.norm(at_centroid(sem.T, T_gt, c))
                         < np.linalg.norm(at_centroid(geometric.T, T_gt, c)) + 1e-4)
-    assert max(gap[True]) < 0.25e-3, gap
+    # (with the creep's remainder, twenty-fourth round: measured 0.08 / 0.08 mm with the
+    # settling, 0.17 / 0.25 mm without it; 0.5 / 1.1 mm without either)
+    assert max(gap[True]) < 0.12e-3, gap
     # the negative control: the paper's scores until the final stage
-    assert min(gap[False]) > 0.4e-3, gap
+    assert min(gap[False]) > 0.15e-3, gap
