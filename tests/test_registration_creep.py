@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_registration_semantic_settle import at_centroid
 
 from benchmarks.registration import D_FINAL, OFFSETS, register_ours
 from benchmarks.registration_indoor import half_room_source
@@ -32,7 +33,7 @@ def creeping_half(centroid_room, semantic: bool, starts: tuple[int, ...]):
     centre = T_gt[:3, :3] @ source.points.mean(axis=0) + T_gt[:3, 3]
 
     def moved(T):
-        return (T @ np.linalg.inv(T_gt) @ np.r_[centre, 1.0])[:3] * 1e3 - centre * 1e3
+        return at_centroid(T, T_gt, centre) * 1e3
 
     probs = (source.probs, target.probs) if semantic else ()
     fixed = moved(Registration(source.points, target.points, RegistrationConfig(
