@@ -59,7 +59,12 @@ trial of a cell (one draw for all): the report also splits the mean NEES into th
 common error, in the map's frame, and their variation about it
 (``estimation.covariance.nees_about_common``). ``--map-phase random`` voxelises each trial's
 map with its own random grid phase: an independent draw of the grid's part of the map's error
-per trial (the trials' sources are the same as with one fixed map). Times per
+per trial (the trials' sources are the same as with one fixed map). ``--map-phases M``
+registers every trial against M maps of the room instead of one: the default grid and M - 1
+random grid phases (:func:`map_shift`). It prints each map's mean NEES over its trials (what
+a test on one map sees: one draw of that map's error for all of them), how many of the maps'
+means lie inside the band of a mean of N, and the mean over every map and trial (the
+calibration over the grid's phase, the draw the covariance's model terms describe). Times per
 registration include the per-point covariances of every method; "paired" = median of the per-
 trial ratios to Open3D, also printed over the trials where both found the right basin (failed
 runs stop at different iteration caps: Open3D 30 a stage, ours 150).
@@ -83,6 +88,8 @@ Usage::
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --setting part
     python benchmarks/registration_indoor.py --rooms tum,icl,scan --maps centroids \
         --source-points 0 --methods gicp-se3,semantic-icp,open3d-gicp --map-phase random
+    python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids \
+        --source-points 0 --methods gicp-se3,open3d-gicp --trials 6 --map-phases 10
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centres --plane-tilt 0.001
     python benchmarks/registration_indoor.py --rooms scan --maps centroids --map-error none
     python benchmarks/registration_indoor.py --rooms scan --maps centres --lattice-noise none
@@ -266,6 +273,12 @@ def phase_shift(trial: int, pitch: float = PITCH) -> np.ndarray:
     return np.random.default_rng([trial, 7]).uniform(0.0, pitch, 3)
 
 
+def map_shift(index: int, pitch: float = PITCH) -> np.ndarray | None:
+    """Return map ``index``'s grid phase (``--map-phases``): None (the default grid) for map
+    0, a random phase from the map's own stream for the others."""
+    return None if index == 0 else np.random.default_rng([index, 31]).uniform(0.0, pitch, 3)
+
+
 def phase_covariance(source: np.ndarray, maps: list[np.ndarray], T: np.ndarray) -> np.ndarray:
     """Return the covariance of the estimates against ``maps`` (started at ``T``, one
     direction, final d_max), about their mean, in the tangent space at ``T``."""
@@ -299,7 +312,7 @@ def half_room_trials(points: np.ndarray, labels: np.ndarray, target: SemanticClo
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="half",
              phases=0, source_points=SOURCE_POINTS, ours: dict | None = None,
              map_phase: str = "fixed", source_cloud: tuple | None = None,
-             noise: float = SOURCE_NOISE) -> dict:
+             noise: float = SOURCE_NOISE, map_index: int = 0) -> dict:
     """Return every trial's numbers of one (room, map kind, offset, setting) cell.
 
     ``ours``: further RegistrationConfig fields for every method of ours. ``map_phase``
@@ -314,9 +327,12 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
 
     ``noise``: the standard deviation (m, per axis) of the Gaussian noise added to each
     trial's source (0: the drawn points themselves).
+
+    ``map_index`` ("half", one map for every trial): the map's grid phase (:func:`map_shift`;
+    0: the default grid).
     """
     # one map for every trial, or (a part's map, a random phase) one per trial below
-    target = (labelled(*voxel_map(points, labels, kind))
+    target = (labelled(*voxel_map(points, labels, kind, shift=map_shift(map_index)))
               if setting == "half" and map_phase == "fixed" else None)
     maps = phase_maps(points, labels, kind, phases) if phases > 1 and setting == "half" else []
     sizes, source_sizes = [], []
@@ -448,6 +464,30 @@ def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half")
                   f"(median {np.median(with_phase):.2f})")
 
 
+def report_maps(cells: list[dict]) -> None:
+    """Print, per method of ours, each map's mean NEES over its converged runs within 0.1 m
+    (``cells``: one :func:`run_cell` per map, the same trials), how many of those means lie
+    inside the 95 % band of a mean of their count, and the mean over every map and run."""
+    print(f"  over {len(cells)} maps (grid phases; map 0 the default grid), the converged "
+          "runs within 0.1 m:")
+    for method in cells[0]["rows"]:
+        per_map = [[r["nees"] for r in cell["rows"][method]
+                    if "nees" in r and r.get("converged") and r["t_err_m"] < 0.1]
+                   for cell in cells]
+        if not any(per_map):
+            continue
+        means = [np.mean(v) if v else float("nan") for v in per_map]
+        inside = sum(chi2_bounds(6, len(v))[0] <= np.mean(v) <= chi2_bounds(6, len(v))[1]
+                     for v in per_map if v)
+        every = np.concatenate([v for v in per_map if v])
+        low, high = chi2_bounds(6, len(every))
+        print(f"  {method}: mean NEES per map {' '.join(f'{m:.2f}' for m in means)} "
+              f"(range {np.nanmin(means):.2f}-{np.nanmax(means):.2f}; {inside} of "
+              f"{sum(bool(v) for v in per_map)} inside the band of their count); over every "
+              f"map and run {every.mean():.2f} (median {np.median(every):.2f}, {len(every)} "
+              f"runs), 95 % bounds [{low:.2f}, {high:.2f}]")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--rooms", default="tum,icl",
@@ -487,6 +527,10 @@ def main(argv=None) -> int:
                         help="fixed: one map per room for every trial; random: each trial's "
                         "map voxelised with its own random grid phase (an independent draw "
                         "of the grid's part of the map's error)")
+    parser.add_argument("--map-phases", type=int, default=1, metavar="M",
+                        help="register every trial against M maps of the room: the default "
+                        "grid and M - 1 random grid phases; prints each map's mean NEES "
+                        "and the mean over all (half setting, --map-phase fixed)")
     parser.add_argument("--map-error", default=None, metavar="S",
                         help="RegistrationConfig.map_error for ours, in pitches, or 'none' "
                         "(the term off; default: the config's default)")
@@ -542,6 +586,10 @@ def main(argv=None) -> int:
         parser.error(f"--classes must be at least {N_GEOMETRIC}")
     global N_CLASSES
     N_CLASSES = args.classes
+    if args.map_phases < 1 or args.map_phases > 1 and (
+            args.setting != "half" or args.map_phase != "fixed"):
+        parser.error("--map-phases must be at least 1; above 1 it needs --setting half and "
+                     "--map-phase fixed")
     if args.phase_covariance == 1 or args.phase_covariance < 0:
         parser.error("--phase-covariance needs at least 2 phases (or 0: off)")
     methods = args.methods.split(",")
@@ -571,13 +619,24 @@ def main(argv=None) -> int:
         register_ours(warm, warm, np.eye(4), (D_FINAL,))
         for kind in args.maps.split(","):
             for offset in args.offsets.split(","):
-                cell = run_cell(points, labels, kind, offset, args.trials, methods,
-                                setting=args.setting, phases=args.phase_covariance,
-                                source_points=args.source_points, ours=ours,
-                                map_phase=args.map_phase, source_cloud=source_cloud,
-                                noise=args.noise)
-                report(name, kind, offset, cell, args.setting)
-                out[f"{name}/{kind}/{offset}/{args.setting}"] = cell
+                cells = [run_cell(points, labels, kind, offset, args.trials, methods,
+                                  setting=args.setting, phases=args.phase_covariance,
+                                  source_points=args.source_points, ours=ours,
+                                  map_phase=args.map_phase, source_cloud=source_cloud,
+                                  noise=args.noise, map_index=index)
+                         for index in range(args.map_phases)]
+                for index, cell in enumerate(cells):
+                    if len(cells) > 1:
+                        print(f"\nmap {index} of {len(cells)}"
+                              + (" (the default grid)" if index == 0 else
+                                 f" (grid phase {np.round(map_shift(index) * 1e3, 1)} mm)"))
+                    report(name, kind, offset, cell, args.setting)
+                key = f"{name}/{kind}/{offset}/{args.setting}"
+                if len(cells) == 1:
+                    out[key] = cells[0]
+                else:
+                    report_maps(cells)
+                    out.update({f"{key}/map{index}": cell for index, cell in enumerate(cells)})
     print(f"\nload average at end {os.getloadavg()[0]:.2f}")
     if args.json:
         with atomic_write(args.json, "w") as fh:

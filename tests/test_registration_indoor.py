@@ -285,7 +285,10 @@ def test_noise_zero_gives_the_maps_own_points():
                                   ["--noise", "nan"],
                                   ["--noise", "0.005", "--source-frames", "other"],
                                   ["--coarse", "random"], ["--frames", "50"],
-                                  ["--frames", "50:10"], ["--frames", "0:50", "--rooms", "scan"]])
+                                  ["--frames", "50:10"], ["--frames", "0:50", "--rooms", "scan"],
+                                  ["--map-phases", "0"],
+                                  ["--map-phases", "2", "--map-phase", "random"],
+                                  ["--map-phases", "2", "--setting", "part"]])
 def test_benchmark_refuses_a_bad_option(argv, capsys):
     from benchmarks.registration_indoor import main
 
@@ -389,3 +392,34 @@ def test_random_map_phase_gives_each_trial_its_own_map(room, monkeypatch, capsys
     cells["fixed"]["rows"]["open3d-gicp"] = fixed  # the report's reference column
     bench.report("tum", "centroids", "small", cells["fixed"])
     assert "about the common error of its 2 runs within 0.1 m" in capsys.readouterr().out
+
+
+def test_map_phases_register_every_trial_against_each_map(room, monkeypatch, capsys):
+    """``--map-phases M``: the same trials against M maps (the default grid, then random
+    grid phases); each map's mean NEES, how many lie inside the band, and the mean over all."""
+    import benchmarks.registration_indoor as bench
+
+    points, labels, _ = room
+    assert bench.map_shift(0) is None
+    shifts = [bench.map_shift(i) for i in (1, 2)]
+    assert all(np.all((0.0 <= s) & (s < 0.03)) for s in shifts)
+    assert not np.allclose(*shifts) and np.array_equal(shifts[0], bench.map_shift(1))
+    calls = []
+    plain = bench.voxel_map
+
+    def recording(*args, **kwargs):
+        calls.append(kwargs.get("shift"))
+        return plain(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "voxel_map", recording)
+    cells = [bench.run_cell(points, labels, "centroids", "small", 2, ["gicp-se3"],
+                            source_points=3000, map_index=i) for i in (0, 1)]
+    assert calls[0] is None and np.array_equal(calls[1], shifts[0])
+    rows = [cell["rows"]["gicp-se3"] for cell in cells]
+    for a, b in zip(*rows):
+        assert a["error_map"] != b["error_map"]  # another map, the same trial otherwise
+    bench.report_maps(cells)
+    out = capsys.readouterr().out
+    values = [[r["nees"] for r in map_rows] for map_rows in rows]
+    assert f"mean NEES per map {np.mean(values[0]):.2f} {np.mean(values[1]):.2f}" in out
+    assert f"over every map and run {np.mean(values):.2f}" in out
