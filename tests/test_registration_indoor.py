@@ -367,12 +367,8 @@ def test_a_shifted_grid_moves_the_cell_walls():
     assert {tuple(c) for c in np.floor((centroids + shift) / 0.03).astype(int)} == cells
 
 
-def test_random_map_phase_gives_each_trial_its_own_map(room, monkeypatch, capsys):
-    """``--map-phase random``: each trial's map is voxelised with its own grid phase, the
-    trial's source as with one fixed map; the report splits off the trials' common error."""
-    import benchmarks.registration_indoor as bench
-
-    points, labels, _ = room
+def recorded_shifts(bench, monkeypatch) -> list:
+    """The ``shift`` of every ``voxel_map`` call the benchmark makes from now on."""
     calls = []
     plain = bench.voxel_map
 
@@ -381,6 +377,16 @@ def test_random_map_phase_gives_each_trial_its_own_map(room, monkeypatch, capsys
         return plain(*args, **kwargs)
 
     monkeypatch.setattr(bench, "voxel_map", recording)
+    return calls
+
+
+def test_random_map_phase_gives_each_trial_its_own_map(room, monkeypatch, capsys):
+    """``--map-phase random``: each trial's map is voxelised with its own grid phase, the
+    trial's source as with one fixed map; the report splits off the trials' common error."""
+    import benchmarks.registration_indoor as bench
+
+    points, labels, _ = room
+    calls = recorded_shifts(bench, monkeypatch)
     cells = {phase: bench.run_cell(points, labels, "centroids", "small", 2, ["gicp-se3"],
                                    source_points=3000, map_phase=phase)
              for phase in ("fixed", "random")}
@@ -404,14 +410,7 @@ def test_map_phases_register_every_trial_against_each_map(room, monkeypatch, cap
     shifts = [bench.map_shift(i) for i in (1, 2)]
     assert all(np.all((0.0 <= s) & (s < 0.03)) for s in shifts)
     assert not np.allclose(*shifts) and np.array_equal(shifts[0], bench.map_shift(1))
-    calls = []
-    plain = bench.voxel_map
-
-    def recording(*args, **kwargs):
-        calls.append(kwargs.get("shift"))
-        return plain(*args, **kwargs)
-
-    monkeypatch.setattr(bench, "voxel_map", recording)
+    calls = recorded_shifts(bench, monkeypatch)
     cells = [bench.run_cell(points, labels, "centroids", "small", 2, ["gicp-se3"],
                             source_points=3000, map_index=i) for i in (0, 1)]
     assert calls[0] is None and np.array_equal(calls[1], shifts[0])
