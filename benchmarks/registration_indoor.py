@@ -388,6 +388,13 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
             "rows": rows}
 
 
+def right_basin_nees(rows: list[dict]) -> list[float]:
+    """Return the NEES of ``rows``' converged runs within 0.1 m of the truth (rows without a
+    ``converged`` entry count as converged)."""
+    return [r["nees"] for r in rows
+            if "nees" in r and r.get("converged", True) and r["t_err_m"] < 0.1]
+
+
 def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half") -> None:
     rows = cell["rows"]
     ref = rows["open3d-gicp"]
@@ -428,7 +435,7 @@ def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half")
             ratio = np.median(t[both] / t_ref[both])
             print(f"  {method} where both found the right basin ({both.sum()} trials): paired "
                   f"time / open3d {ratio:.2f}")
-        right = [r["nees"] for r in converged if "nees" in r and r["t_err_m"] < 0.1]
+        right = right_basin_nees(converged)
         if right and len(right) < len(converged):
             # a converged run in another basin carries a NEES in the thousands, which no
             # covariance covers: the calibration of the runs in the right basin, apart
@@ -471,14 +478,14 @@ def report_maps(cells: list[dict]) -> None:
     print(f"  over {len(cells)} maps (grid phases; map 0 the default grid), the converged "
           "runs within 0.1 m:")
     for method in cells[0]["rows"]:
-        per_map = [[r["nees"] for r in cell["rows"][method]
-                    if "nees" in r and r.get("converged") and r["t_err_m"] < 0.1]
-                   for cell in cells]
+        per_map = [right_basin_nees(cell["rows"][method]) for cell in cells]
         if not any(per_map):
             continue
         means = [np.mean(v) if v else float("nan") for v in per_map]
-        inside = sum(chi2_bounds(6, len(v))[0] <= np.mean(v) <= chi2_bounds(6, len(v))[1]
-                     for v in per_map if v)
+        inside = 0
+        for v in filter(None, per_map):
+            low, high = chi2_bounds(6, len(v))
+            inside += low <= np.mean(v) <= high
         every = np.concatenate([v for v in per_map if v])
         low, high = chi2_bounds(6, len(every))
         print(f"  {method}: mean NEES per map {' '.join(f'{m:.2f}' for m in means)} "
