@@ -294,7 +294,7 @@ class RegistrationConfig:
         surface is MAP_ERROR_THICKNESS (half a pitch) thick, in proportion to its local
         thickness elsewhere (:meth:`Registration.map_thickness`: the standard deviation of
         its nearest map points along their normal; :meth:`Registration.map_error_information`);
-        the covariance is the Loewner maximum of that term's and the point-noise sandwich's.
+        the term's covariance is added to the point-noise sandwich's and the crossings'.
         A centroid map rounds edges, thins small objects and cuts surface layers where its
         grid happens to lie, coherently over whole objects, so the fit's error has a part
         that does not shrink with the source's density: real rooms against their 3 cm map,
@@ -303,10 +303,11 @@ class RegistrationConfig:
         thin ones (a single laser scan's map, 3 mm) hardly: the size needed on the four
         RGB-D room maps at 15k points spreads 0.055-0.068 of the local thickness where it
         spread 0.018-0.027 pitch unscaled, which over-covered the scan 3-6x (docs/
-        registration.md, "A single laser scan's map"). 0.028 since one covariance per
-        centroid (``pooled_source_covariance``) took the TUM room's dense cells' errors
-        down (0.035 before; docs/registration.md, "The size with one covariance per
-        centroid"). Empirical. None = not added
+        registration.md, "A single laser scan's map"). 0.016 since the term is added
+        rather than taken as the Loewner maximum with the rest (twenty-sixth round: ten
+        cells of three rooms, raw and 15k-point halves, over the grid's phases; 0.028 as the
+        maximum, 0.035 before one covariance per centroid; docs/registration.md, "The map
+        term added, not its maximum"). Empirical. None = not added
     map_error_block : edge (m) of the cubes displaced together by ``map_error`` (0.8 m, an
         object's scale; 0.4 m needs a larger ``map_error`` and fits as well)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
@@ -358,7 +359,7 @@ class RegistrationConfig:
     partial_voxel_matching: bool = True
     pooled_source_covariance: bool = True
     crossing_bias: bool = True
-    map_error: float | None = 0.028
+    map_error: float | None = 0.016
     map_error_block: float = 0.8
 
     def __post_init__(self):
@@ -1434,10 +1435,9 @@ class Registration:
         ``map_error`` times the grid's pitch. A shift u of a pair's target point changes its
         score by G_k u, G_k = w_k J_k^T U_k^T (:meth:`SolutionTerms.shift_sensitivity`), so
         the score sums gain ``s^2 sum_b G_b G_b^T``, G_b the sum of G_k over the pairs whose
-        target point is in cube b. The reported covariance is the Loewner maximum of
-        ``A^-1 B_map A^-1`` and the point-noise sandwich (with the other model terms): the
-        sandwich's meat already holds the map's error at its own blocks' scale. The estimate
-        does not change.
+        target point is in cube b. ``A^-1 B_map A^-1`` is added to the point-noise sandwich
+        and the other model terms: the sandwich's meat holds the map's error only at its own
+        blocks' scale, which is little of it. The estimate does not change.
         """
         cfg = self.config
         pitch = self._grid.pitch
@@ -1948,7 +1948,11 @@ class Registration:
                 gain = float(np.trace(np.linalg.solve(fixed, cov_noise)) / 6.0)
             if grid_terms is not None:
                 B_crossing, crossing, B_map, map_error = grid_terms.result()
-                B_model = B_model + B_crossing
+                # independent parts add: the sandwich's meat holds the map's error only at
+                # its own blocks' scale, which is little of it (their sums alone are 20-600x
+                # too small in NEES on the raw halves; docs/registration.md, "The map term
+                # added, not its maximum")
+                B_model = B_model + B_crossing + B_map
                 modelled = modelled or crossing is not None or map_error is not None
             cov_model = np.zeros((6, 6))
             if modelled:
@@ -1956,13 +1960,6 @@ class Registration:
             # (unconstrained directions: one UNCONSTRAINED_VARIANCE, not one per part)
             cov = cov_noise + cov_model if not unconstrained else \
                 information_to_covariance(sol.A, B + B_model)[0]
-            if map_error is not None and not unconstrained:
-                # the sandwich's meat already holds the map's error at its blocks' scale (the
-                # residuals are measured against the map), the term holds it at the scale of
-                # objects: the smallest ellipsoid containing both, not their sum (measured:
-                # the sum over-covers at 15k source points, mean NEES 3.7-4.0 on the TUM room)
-                cov = loewner_max(cov, information_to_covariance(sol.A, B_map)[0])
-                cov_model = cov - cov_noise
             wide = cluster_sums(tgt, sol.scores, 4.0 * block)
             cov_wide = information_to_covariance(A_noise, wide.T @ wide)[0] + cov_model
             S2 = np.array([scale ** 2] * 3 + [1.0] * 3)
