@@ -1369,18 +1369,22 @@ class Registration:
                                     self.semantic_index.labels if self.semantic else None)
 
     def _grid_terms(self, sol: SolutionTerms) -> tuple:
-        """Return (B_crossing, crossing rms or None, B_map, map_error or None) of a source
-        matched by cell in a voxel-centroid map (zeros and None where switched off)."""
+        """Return (the model terms' score covariance, crossing rms or None, map_error or None)
+        of a source matched by cell in a voxel-centroid map (zeros and None where switched
+        off). The two terms are independent of each other and of the point noise, so their
+        score covariances add (the map term's: docs/registration.md, "The map term added,
+        not its maximum"; the sandwich's meat holds little of the map's error)."""
         cfg = self.config
+        B, crossing, map_error = np.zeros((6, 6)), None, None
         # model error: same-voxel pairs whose source point the noise moved across a cell wall
-        B_crossing, crossing = np.zeros((6, 6)), None
         if cfg.crossing_bias:
             B_crossing, crossing = self.crossing_information(sol)
+            B = B + B_crossing
         # model error: the map's representation of the room, coherent over whole objects
-        B_map, map_error = np.zeros((6, 6)), None
         if cfg.map_error is not None:
             B_map, map_error = self.map_error_information(sol)
-        return B_crossing, crossing, B_map, map_error
+            B = B + B_map
+        return B, crossing, map_error
 
     def crossing_information(self, sol: SolutionTerms) -> tuple[np.ndarray, float | None]:
         """Return (the (6, 6) score covariance of same-voxel matching's cell crossings, the
@@ -1947,12 +1951,8 @@ class Registration:
                 cov_noise = loewner_max(fixed, information_to_covariance(A_noise, B)[0])
                 gain = float(np.trace(np.linalg.solve(fixed, cov_noise)) / 6.0)
             if grid_terms is not None:
-                B_crossing, crossing, B_map, map_error = grid_terms.result()
-                # independent parts add: the sandwich's meat holds the map's error only at
-                # its own blocks' scale, which is little of it (their sums alone are 20-600x
-                # too small in NEES on the raw halves; docs/registration.md, "The map term
-                # added, not its maximum")
-                B_model = B_model + B_crossing + B_map
+                B_grid, crossing, map_error = grid_terms.result()
+                B_model = B_model + B_grid
                 modelled = modelled or crossing is not None or map_error is not None
             cov_model = np.zeros((6, 6))
             if modelled:
