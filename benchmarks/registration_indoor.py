@@ -493,6 +493,30 @@ def report_maps(cells: list[dict]) -> None:
               f"{sum(bool(v) for v in per_map)} inside the band of their count); over every "
               f"map and run {every.mean():.2f} (median {np.median(every):.2f}, {len(every)} "
               f"runs), 95 % bounds [{low:.2f}, {high:.2f}]")
+        splits = trial_splits(cells, method)
+        if splits:
+            # a trial's half, noise, labels and start are the same against every map: its
+            # error common to the maps is that draw, its variation about it the grid phase's
+            print(f"  {method} per trial over the maps, mean NEES (of the trial's common error:"
+                  " its half, noise and start; about it: the grid phase's): "
+                  + "; ".join(f"{t} {s.mean:.2f} ({s.common_part:.2f}; {s.about_common:.2f})"
+                              for t, s, _ in splits))
+
+
+def trial_splits(cells: list[dict], method: str) -> list[tuple[int, object, int]]:
+    """Return (trial, :func:`nees_about_common` split, runs) of each trial with a converged
+    run within 0.1 m against at least two of ``cells``' maps (the same trials in each), its
+    errors and covariances in the map's frame."""
+    out = []
+    for trial in range(len(cells[0]["rows"][method])):
+        runs = [cell["rows"][method][trial] for cell in cells]
+        runs = [r for r in runs if "error_map" in r and r.get("converged", True)
+                and r["t_err_m"] < 0.1]
+        if len(runs) >= 2:
+            out.append((trial, nees_about_common(np.array([r["error_map"] for r in runs]),
+                                                 np.array([r["covariance_map"] for r in runs])),
+                        len(runs)))
+    return out
 
 
 def main(argv=None) -> int:

@@ -422,3 +422,34 @@ def test_map_phases_register_every_trial_against_each_map(room, monkeypatch, cap
     values = [[r["nees"] for r in map_rows] for map_rows in rows]
     assert f"mean NEES per map {np.mean(values[0]):.2f} {np.mean(values[1]):.2f}" in out
     assert f"over every map and run {np.mean(values):.2f}" in out
+    assert "gicp-se3 per trial over the maps, mean NEES" in out
+
+
+def test_trial_splits_part_each_trials_error_common_to_the_maps_from_the_phases():
+    """``report_maps``' per-trial split: a trial registered against every map keeps its half,
+    noise and start, so its error common to the maps is that draw and its variation about it
+    the grid phase's. Runs off the right basin are left out."""
+    import benchmarks.registration_indoor as bench
+    from estimation.covariance import nees_about_common
+
+    rng = np.random.default_rng(5)
+    shared = rng.normal(size=6)  # trial 0: the same error against every map
+    cov = np.diag([1e-4] * 3 + [1e-6] * 3)
+
+    def row(error, t_err=0.001):
+        return {"error_map": list(error * np.sqrt(np.diag(cov))), "covariance_map": cov,
+                "t_err_m": t_err, "converged": True, "nees": 0.0}
+
+    cells = [{"rows": {"gicp-se3": [row(shared), row(rng.normal(size=6)),
+                                    row(rng.normal(size=6), t_err=0.5 if i == 2 else 0.001)]}}
+             for i in range(4)]
+    splits = bench.trial_splits(cells, "gicp-se3")
+    assert [(t, n) for t, _, n in splits] == [(0, 4), (1, 4), (2, 3)]
+    first = splits[0][1]
+    assert first.about_common == pytest.approx(0.0, abs=1e-9)
+    assert first.common_part == pytest.approx(float(shared @ shared))
+    errors = np.array([c["rows"]["gicp-se3"][1]["error_map"] for c in cells])
+    expected = nees_about_common(errors, np.broadcast_to(cov, (4, 6, 6)))
+    assert splits[1][1].about_common == pytest.approx(expected.about_common)
+    assert splits[1][1].mean == pytest.approx(float(nees(errors, np.broadcast_to(
+        cov, (4, 6, 6))).mean()))
