@@ -521,7 +521,8 @@ class CovarianceDiagnostic:
     map_error : the standard deviation (m, per axis) of the blocks' offsets of the
         map-representation term (``RegistrationConfig.map_error``) that was used where the
         map's surface is MAP_ERROR_THICKNESS pitches thick, or None;
-        what it adds to the point-noise sandwich is part of ``model_covariance``
+        what it adds to the point-noise sandwich, with the grid-phase field
+        (``RegistrationConfig.map_phase_error``), is part of ``model_covariance``
     plane_tilt : the standard deviation (rad) of the tilts of the quantisation term's planes
         (``RegistrationConfig.plane_tilt``) that was used, or None (no quantisation term, or
         no tilts); part of ``model_covariance``
