@@ -111,7 +111,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.registration import D_FINAL, register_ours, run_open3d  # noqa: E402
 from benchmarks.registration import OFFSETS as SIMULATOR_OFFSETS  # noqa: E402
-from estimation.covariance import chi2_bounds, nees, nees_about_common  # noqa: E402
+from estimation.covariance import (  # noqa: E402
+    CommonErrorSplit,
+    chi2_bounds,
+    nees,
+    nees_about_common,
+)
 from estimation.fileio import atomic_write  # noqa: E402
 from estimation.registration import pose_error  # noqa: E402
 from estimation.registration.metrics import offset_about_centroid  # noqa: E402
@@ -388,11 +393,15 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
             "rows": rows}
 
 
+def in_right_basin(row: dict) -> bool:
+    """Whether a trial's ``row`` converged within 0.1 m of the truth (a row without a
+    ``converged`` entry counts as converged)."""
+    return row.get("converged", True) and row["t_err_m"] < 0.1
+
+
 def right_basin_nees(rows: list[dict]) -> list[float]:
-    """Return the NEES of ``rows``' converged runs within 0.1 m of the truth (rows without a
-    ``converged`` entry count as converged)."""
-    return [r["nees"] for r in rows
-            if "nees" in r and r.get("converged", True) and r["t_err_m"] < 0.1]
+    """Return the NEES of ``rows``' converged runs within 0.1 m of the truth."""
+    return [r["nees"] for r in rows if "nees" in r and in_right_basin(r)]
 
 
 def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half") -> None:
@@ -451,7 +460,7 @@ def report(name: str, kind: str, offset: str, cell: dict, setting: str = "half")
                   f"{np.mean([r['nees'] for r in trusted]):.2f}, 95 % bounds [{low:.2f}, "
                   f"{high:.2f}]; {sum(r['t_err_m'] >= 0.1 for r in trusted)} of them 0.1 m "
                   f"or more off")
-        right_runs = [r for r in converged if "error_map" in r and r["t_err_m"] < 0.1]
+        right_runs = [r for r in converged if "error_map" in r and in_right_basin(r)]
         if len(right_runs) >= 2:
             # every trial of a cell registers to the same map (--map-phase fixed): the map's
             # error is common to them, one draw for all, which N trials do not average
@@ -503,15 +512,15 @@ def report_maps(cells: list[dict]) -> None:
                               for t, s, _ in splits))
 
 
-def trial_splits(cells: list[dict], method: str) -> list[tuple[int, object, int]]:
+def trial_splits(cells: list[dict], method: str
+                 ) -> list[tuple[int, CommonErrorSplit, int]]:
     """Return (trial, :func:`nees_about_common` split, runs) of each trial with a converged
     run within 0.1 m against at least two of ``cells``' maps (the same trials in each), its
     errors and covariances in the map's frame."""
     out = []
     for trial in range(len(cells[0]["rows"][method])):
-        runs = [cell["rows"][method][trial] for cell in cells]
-        runs = [r for r in runs if "error_map" in r and r.get("converged", True)
-                and r["t_err_m"] < 0.1]
+        runs = [r for r in (cell["rows"][method][trial] for cell in cells)
+                if "error_map" in r and in_right_basin(r)]
         if len(runs) >= 2:
             out.append((trial, nees_about_common(np.array([r["error_map"] for r in runs]),
                                                  np.array([r["covariance_map"] for r in runs])),

@@ -140,9 +140,8 @@ def test_the_term_adds_to_the_rest_and_scales_with_its_variance(room):
     points, labels, target = room
     source, _, init, d0 = benchmark_start(points, labels, 2)
     size, phase = RegistrationConfig().map_error, RegistrationConfig().map_phase_error
-    runs = [register_ours(source, target, init, (d0, D_FINAL), map_error=s * size,
-                          map_phase_error=s * phase)[0] if s else
-            register_ours(source, target, init, (d0, D_FINAL), map_error=None)[0]
+    runs = [register_ours(source, target, init, (d0, D_FINAL),
+                          map_error=s * size if s else None, map_phase_error=s * phase)[0]
             for s in (0.0, 1.0, 2.0)]
     assert all(np.array_equal(r.T, runs[0].T) for r in runs)  # covariance only
     once, twice = (r.covariance - runs[0].covariance for r in runs[1:])
