@@ -32,7 +32,7 @@ from benchmarks.registration_indoor import (
     room_part_source,
     voxel_map,
 )
-from estimation.covariance import check_consistency, nees
+from estimation.covariance import check_consistency, crossed_bootstrap_interval, nees
 from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
 from estimation.registration.correspondences import SemanticIndex, semantic_correspondences
 from estimation.registration.metrics import offset_about_centroid
@@ -422,6 +422,10 @@ def test_map_phases_register_every_trial_against_each_map(room, monkeypatch, cap
     values = [[r["nees"] for r in map_rows] for map_rows in rows]
     assert f"mean NEES per map {np.mean(values[0]):.2f} {np.mean(values[1]):.2f}" in out
     assert f"over every map and run {np.mean(values):.2f}" in out
+    low, high = crossed_bootstrap_interval(np.array(values))
+    assert "(crossed bootstrap; runs of one map share its grid phase" in out
+    assert f"[{low:.2f}, {high:.2f}]: 6 " in out
+    np.testing.assert_array_equal(bench.nees_by_map_and_trial(cells, "gicp-se3"), values)
     assert "gicp-se3 per trial over the maps, mean NEES" in out
 
 
