@@ -288,7 +288,8 @@ def test_noise_zero_gives_the_maps_own_points():
                                   ["--frames", "50:10"], ["--frames", "0:50", "--rooms", "scan"],
                                   ["--map-phases", "0"],
                                   ["--map-phases", "2", "--map-phase", "random"],
-                                  ["--map-phases", "2", "--setting", "part"]])
+                                  ["--map-phases", "2", "--setting", "part"],
+                                  ["--first-trial", "-1"]])
 def test_benchmark_refuses_a_bad_option(argv, capsys):
     from benchmarks.registration_indoor import main
 
@@ -365,6 +366,30 @@ def test_a_shifted_grid_moves_the_cell_walls():
     assert len(centroids) == len(centres)
     cells = {tuple(c) for c in np.floor((centres + shift) / 0.03).astype(int)}
     assert {tuple(c) for c in np.floor((centroids + shift) / 0.03).astype(int)} == cells
+
+
+def test_first_trial_sets_the_trials_seeds(monkeypatch):
+    """``--first-trial K``: every map's cell draws its trials from seeds K, K + 1, ..."""
+    import benchmarks.registration_indoor as bench
+
+    rng = np.random.default_rng(0)
+    monkeypatch.setattr(bench, "room_cloud", lambda *a, **k: (rng.uniform(0, 2, (500, 3)),
+                                                             rng.integers(0, 4, 500)))
+    monkeypatch.setattr(bench, "register_ours", lambda *a, **k: None)
+    seeds = []
+
+    class Stop(Exception):
+        pass
+
+    def run_cell(*args, seed0=0, **kwargs):
+        seeds.append(seed0)
+        raise Stop
+
+    monkeypatch.setattr(bench, "run_cell", run_cell)
+    for argv, seed in ((["--first-trial", "6"], 6), ([], 0)):
+        with pytest.raises(Stop):
+            bench.main(["--rooms", "tum", "--maps", "centroids", *argv])
+        assert seeds.pop() == seed
 
 
 def recorded_shifts(bench, monkeypatch) -> list:
