@@ -378,16 +378,16 @@ def test_first_trial_sets_the_trials_seeds(monkeypatch):
     monkeypatch.setattr(bench, "register_ours", lambda *a, **k: None)
     seeds = []
 
-    class Stop(Exception):
+    class StopError(Exception):
         pass
 
     def run_cell(*args, seed0=0, **kwargs):
         seeds.append(seed0)
-        raise Stop
+        raise StopError
 
     monkeypatch.setattr(bench, "run_cell", run_cell)
     for argv, seed in ((["--first-trial", "6"], 6), ([], 0)):
-        with pytest.raises(Stop):
+        with pytest.raises(StopError):
             bench.main(["--rooms", "tum", "--maps", "centroids", *argv])
         assert seeds.pop() == seed
 
