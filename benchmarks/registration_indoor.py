@@ -495,7 +495,8 @@ def report_maps(cells: list[dict]) -> None:
     print(f"  over {len(cells)} maps (grid phases; map 0 the default grid), the converged "
           "runs within 0.1 m:")
     for method in cells[0]["rows"]:
-        per_map = [right_basin_nees(cell["rows"][method]) for cell in cells]
+        table = nees_by_map_and_trial(cells, method)
+        per_map = [row[np.isfinite(row)].tolist() for row in table]
         if not any(per_map):
             continue
         means = [np.mean(v) if v else float("nan") for v in per_map]
@@ -511,7 +512,7 @@ def report_maps(cells: list[dict]) -> None:
               f"map and run {every.mean():.2f} (median {np.median(every):.2f}, {len(every)} "
               f"runs), 95 % bounds [{low:.2f}, {high:.2f}]")
         # the runs share their map's grid phase and their trial's half: few draws
-        low, high = crossed_bootstrap_interval(nees_by_map_and_trial(cells, method))
+        low, high = crossed_bootstrap_interval(table)
         print(f"  {method}: that mean's 95 % interval with the maps and the trials resampled "
               f"(crossed bootstrap; runs of one map share its grid phase, runs of one trial "
               f"its half, noise, labels and start) [{low:.2f}, {high:.2f}]: 6 "

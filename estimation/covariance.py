@@ -154,13 +154,18 @@ def crossed_bootstrap_interval(values: np.ndarray, level: float = 0.95, draws: i
     rng = np.random.default_rng(seed)
     n_rows, n_cols = values.shape
     # how often each row and column is drawn, per bootstrap draw
-    row_counts = np.apply_along_axis(np.bincount, 1, rng.integers(0, n_rows, (draws, n_rows)),
-                                     minlength=n_rows)
-    col_counts = np.apply_along_axis(np.bincount, 1, rng.integers(0, n_cols, (draws, n_cols)),
-                                     minlength=n_cols)
+    row_counts = _draw_counts(rng.integers(0, n_rows, (draws, n_rows)), n_rows)
+    col_counts = _draw_counts(rng.integers(0, n_cols, (draws, n_cols)), n_cols)
     sums = np.einsum("dr,rc,dc->d", row_counts, np.where(present, values, 0.0), col_counts)
     counts = np.einsum("dr,rc,dc->d", row_counts, present.astype(float), col_counts)
     means = sums[counts > 0] / counts[counts > 0]
     tail = 50.0 * (1.0 - level)
     low, high = np.percentile(means, [tail, 100.0 - tail])
     return float(low), float(high)
+
+
+def _draw_counts(picks: np.ndarray, n: int) -> np.ndarray:
+    """Return (draws, n) how often each of n items occurs in each row of ``picks`` (one
+    bincount over every draw at once, each draw's items offset by n)."""
+    offsets = n * np.arange(len(picks))[:, None]
+    return np.bincount((picks + offsets).ravel(), minlength=n * len(picks)).reshape(-1, n)

@@ -139,7 +139,8 @@ def test_the_term_adds_to_the_rest_and_scales_with_its_variance(room):
     # covariance is then affine in the term's variance, which a maximum is not
     points, labels, target = room
     source, _, init, d0 = benchmark_start(points, labels, 2)
-    size, phase = RegistrationConfig().map_error, RegistrationConfig().map_phase_error
+    defaults = RegistrationConfig()
+    size, phase = defaults.map_error, defaults.map_phase_error
     runs = [register_ours(source, target, init, (d0, D_FINAL),
                           map_error=s * size if s else None, map_phase_error=s * phase)[0]
             for s in (0.0, 1.0, 2.0)]
