@@ -74,6 +74,10 @@ def _common(parser, default_method: str) -> None:
                         "(default), none: between the samples")
     parser.add_argument("--max-iterations", type=int, default=None,
                         help="outer iterations at the final correspondence distance (60)")
+    parser.add_argument("--systematic-sigma", default=None, metavar="S|SX,SY,SZ",
+                        help="standard deviation (m) of an offset common to the whole source "
+                        "that the data cannot show (the sensors' calibration or depth bias), "
+                        "isotropic or along the target's x, y, z; added to the covariance (0)")
     parser.add_argument("--estimator", metavar="NAME",
                         help="a registration estimator from `octofactor plugins` (overrides "
                         "--method; receives the clouds, --init and the class probabilities)")
@@ -168,6 +172,9 @@ def _register(args, source, target, flip=None) -> dict:
             "map_error_m": getattr(diagnostic, "map_error", None),
             "plane_tilt_rad": getattr(diagnostic, "plane_tilt", None),
             "lattice_noise_m": getattr(diagnostic, "lattice_noise", None),
+            # (an input: the offset common to the whole source that the data cannot show)
+            "systematic_sigma_m": (None if getattr(args, "estimator", None)
+                                   else config.systematic_sigma),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:
@@ -197,6 +204,10 @@ def registration_config(args):
                             "max_iterations": "max_iterations"})
     if args.surface_radius is not None:
         update["surface_radius"] = _surface_radius(args.surface_radius)
+    if args.systematic_sigma is not None:
+        from pipelines.validate import systematic_sigma
+
+        update["systematic_sigma"] = systematic_sigma(args.systematic_sigma)
     if args.alpha is not None:  # a given alpha is used as given, not re-estimated
         update["cauchy_scale"] = "fixed"
     return replace(config, **update)

@@ -122,6 +122,19 @@ def registration_numbers(args) -> None:
     number("--initial-corr", args.initial_corr, 0.0, 1e6, low_open=True, allow_none=True)
     number("--alpha", args.alpha, 0.0, 1e6, low_open=True, allow_none=True)
     integer("--max-iterations", args.max_iterations, 1, 100000, allow_none=True)
+    systematic_sigma(args.systematic_sigma)
+
+
+def systematic_sigma(text) -> float | tuple[float, float, float] | None:
+    """``--systematic-sigma S`` or ``SX,SY,SZ`` (m, each in [0, 1e3]): one number or three."""
+    if text is None:
+        return None
+    parts = str(text).split(",")
+    if len(parts) not in (1, 3):
+        raise OptionError(f"--systematic-sigma must be one number or three (SX,SY,SZ), "
+                          f"got {text!r}")
+    values = tuple(number("--systematic-sigma", v, 0.0, 1e3) for v in parts)
+    return values[0] if len(values) == 1 else values
 
 
 def room_options(args) -> None:

@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr  # (loaded with scipy.spatial already)
 
+from ..config import coerce_fields
 from ..errors import EstimationError
 from .correspondences import (
     Correspondences,
@@ -324,6 +325,14 @@ class RegistrationConfig:
         (R^2 0.8-0.9 of a sinusoid in it) far more than the independent blocks allow
         (docs/registration.md, "The map's grid phase, coherent over the whole map").
         0.020 with ``map_error`` 0.010: empirical. None or 0 = not added
+    systematic_sigma : standard deviation (m) of an offset common to the whole source
+        relative to the target that neither cloud's data can show: the two sensors' extrinsic
+        calibration or depth bias, a map fused under other poses. One number (isotropic) or
+        three, along the target frame's x, y, z. The offset u ~ N(0, diag(sigma^2)) moves
+        the estimate by u, so ``R^T diag(sigma^2) R`` is added to the covariance's
+        translation block (R the estimate's rotation; the body-frame tangent). The data
+        cannot tell this value: it is an input, e.g. from the sensors' specification
+        (docs/registration.md, "Errors the data cannot show"). 0 = none (default)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
         choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise
@@ -376,8 +385,17 @@ class RegistrationConfig:
     map_error: float | None = 0.010
     map_error_block: float = 0.8
     map_phase_error: float | None = 0.020
+    systematic_sigma: float | tuple[float, float, float] = 0.0
 
     def __post_init__(self):
+        coerce_fields(self)
+        sigma = self.systematic_sigma
+        values = sigma if isinstance(sigma, tuple) else (sigma,)
+        if len(values) not in (1, 3) or not all(
+                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                and v >= 0 for v in values):
+            raise EstimationError(f"systematic_sigma must be a non-negative finite number or "
+                                  f"three of them (m; target x, y, z), got {sigma!r}")
         for name in ("max_correspondence_distance", "cauchy_alpha"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -2024,6 +2042,8 @@ class Registration:
             # of the source beside the target's surfaces (another basin), has no
             # covariance to trust (NaN gap: one direction; NaN share: not measured)
             diagnostic = replace(diagnostic, trusted=False)
+        # an offset common to the whole source that the data cannot show (an input)
+        cov = cov + systematic_covariance(cfg.systematic_sigma, T[:3, :3])
         dist = np.linalg.norm(tgt - transform_points(T, src), axis=1)
         return RegistrationResult(
             T, cov, sol.H, iterations, inliers, inliers / len(self.source),
@@ -2707,6 +2727,18 @@ def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarra
 # voxel_matching of a grid axis get no term
 CROSSING_OCCUPIED = 0.01
 MIN_CROSSING_PAIRS = 30
+
+
+def systematic_covariance(sigma: float | tuple[float, float, float],
+                          R: np.ndarray) -> np.ndarray:
+    """Return the (6, 6) covariance, [rotation, translation] in the body frame of ``T Exp(xi)``,
+    of an offset u ~ N(0, diag(sigma^2)) (target frame; one ``sigma`` = isotropic) common to
+    the whole source: ``T' = [R, t + u] = T Exp([0, R^T u])``, so the translation block is
+    ``R^T diag(sigma^2) R`` and the rest is zero."""
+    variance = np.broadcast_to(np.square(np.asarray(sigma, dtype=float)), (3,))
+    cov = np.zeros((6, 6))
+    cov[3:, 3:] = (R.T * variance) @ R
+    return cov
 
 
 def grid_phase_information(G: np.ndarray, points: np.ndarray, origin: np.ndarray,
