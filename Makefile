@@ -7,7 +7,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.octofactor-installed
 DEBIAN_PACKAGES := libusb-1.0-0 libgl1 libegl1 libx11-6 octomap-tools gcc python3-dev
 PYTEST_ARGS ?=
-# The suite runs in two pytest-xdist workers (12-13 min -> 8.5 min on two cores); a file's tests
+# The suite runs in two pytest-xdist workers (12-13 min -> 8.5-9.5 min on two cores); a file's tests
 # stay on one worker, in order (the README's blocks build on each other). TEST_WORKERS=0 runs
 # it in this process.
 TEST_WORKERS ?= 2
