@@ -78,6 +78,10 @@ def _common(parser, default_method: str) -> None:
                         help="standard deviation (m) of an offset common to the whole source "
                         "that the data cannot show (the sensors' calibration or depth bias), "
                         "isotropic or along the target's x, y, z; added to the covariance (0)")
+    parser.add_argument("--systematic-rotation-sigma", type=float, default=None, metavar="RAD",
+                        help="standard deviation (rad, per axis) of a rotation of the whole "
+                        "source about its own origin that the data cannot show (a sensor's "
+                        "extrinsic rotation error); added to the covariance (0)")
     parser.add_argument("--estimator", metavar="NAME",
                         help="a registration estimator from `octofactor plugins` (overrides "
                         "--method; receives the clouds, --init and the class probabilities)")
@@ -175,6 +179,8 @@ def _register(args, source, target, flip=None) -> dict:
             # (an input: the offset common to the whole source that the data cannot show)
             "systematic_sigma_m": (None if getattr(args, "estimator", None)
                                    else config.systematic_sigma),
+            "systematic_rotation_sigma_rad": (None if getattr(args, "estimator", None)
+                                              else config.systematic_rotation_sigma),
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:
@@ -201,7 +207,8 @@ def registration_config(args):
     update = changes(args, {"max_corr": "max_correspondence_distance",
                             "initial_corr": "initial_correspondence_distance",
                             "alpha": "cauchy_alpha", "semantic_weight": "semantic_weight",
-                            "max_iterations": "max_iterations"})
+                            "max_iterations": "max_iterations",
+                            "systematic_rotation_sigma": "systematic_rotation_sigma"})
     if args.surface_radius is not None:
         update["surface_radius"] = _surface_radius(args.surface_radius)
     if args.systematic_sigma is not None:

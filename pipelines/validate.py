@@ -123,6 +123,8 @@ def registration_numbers(args) -> None:
     number("--alpha", args.alpha, 0.0, 1e6, low_open=True, allow_none=True)
     integer("--max-iterations", args.max_iterations, 1, 100000, allow_none=True)
     systematic_sigma(args.systematic_sigma)
+    number("--systematic-rotation-sigma", args.systematic_rotation_sigma, 0.0, math.pi,
+           allow_none=True)
 
 
 def systematic_sigma(text) -> float | tuple[float, float, float] | None:

@@ -333,6 +333,10 @@ class RegistrationConfig:
         translation block (R the estimate's rotation; the body-frame tangent). The data
         cannot tell this value: it is an input, e.g. from the sensors' specification
         (docs/registration.md, "Errors the data cannot show"). 0 = none (default)
+    systematic_rotation_sigma : standard deviation (rad, per axis) of a rotation common to
+        the whole source about its own frame's origin (the sensor), that the data cannot
+        show either: a sensor's extrinsic rotation error. ``T' = T Exp([delta, 0])``, so
+        ``sigma^2 I`` is added to the covariance's rotation block. 0 = none (default)
     cluster_size : block edge (m) of the cluster-robust sandwich; None = ``cluster_factor``
         times the median distance to the k-th neighbour in the target (0.75: an empirical
         choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise
@@ -386,6 +390,7 @@ class RegistrationConfig:
     map_error_block: float = 0.8
     map_phase_error: float | None = 0.020
     systematic_sigma: float | tuple[float, float, float] = 0.0
+    systematic_rotation_sigma: float = 0.0
 
     def __post_init__(self):
         coerce_fields(self)
@@ -442,7 +447,8 @@ class RegistrationConfig:
                 raise EstimationError(f"{name} must be a positive finite number or None, "
                                       f"got {value!r}")
         # (pitches; pitches; rad; m)
-        for name in ("map_error", "map_phase_error", "plane_tilt", "lattice_noise"):
+        for name in ("map_error", "map_phase_error", "plane_tilt", "lattice_noise",
+                     "systematic_rotation_sigma"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, (int, float))
                                           and not isinstance(value, bool)
@@ -2043,7 +2049,8 @@ class Registration:
             # covariance to trust (NaN gap: one direction; NaN share: not measured)
             diagnostic = replace(diagnostic, trusted=False)
         # an offset common to the whole source that the data cannot show (an input)
-        cov = cov + systematic_covariance(cfg.systematic_sigma, T[:3, :3])
+        cov = cov + systematic_covariance(cfg.systematic_sigma, T[:3, :3],
+                                          cfg.systematic_rotation_sigma)
         dist = np.linalg.norm(tgt - transform_points(T, src), axis=1)
         return RegistrationResult(
             T, cov, sol.H, iterations, inliers, inliers / len(self.source),
@@ -2729,14 +2736,18 @@ CROSSING_OCCUPIED = 0.01
 MIN_CROSSING_PAIRS = 30
 
 
-def systematic_covariance(sigma: float | tuple[float, float, float],
-                          R: np.ndarray) -> np.ndarray:
+def systematic_covariance(sigma: float | tuple[float, float, float], R: np.ndarray,
+                          rotation_sigma: float = 0.0) -> np.ndarray:
     """Return the (6, 6) covariance, [rotation, translation] in the body frame of ``T Exp(xi)``,
-    of an offset u ~ N(0, diag(sigma^2)) (target frame; one ``sigma`` = isotropic) common to
-    the whole source: ``T' = [R, t + u] = T Exp([0, R^T u])``, so the translation block is
-    ``R^T diag(sigma^2) R`` and the rest is zero."""
+    of errors common to the whole source that its data cannot show:
+    - an offset u ~ N(0, diag(sigma^2)) (target frame; one ``sigma`` = isotropic):
+      ``T' = [R, t + u] = T Exp([0, R^T u])``, the translation block ``R^T diag(sigma^2) R``;
+    - a rotation delta ~ N(0, rotation_sigma^2 I) about the source frame's origin:
+      ``T' = T Exp([delta, 0])``, the rotation block ``rotation_sigma^2 I``.
+    The two are independent: the cross blocks are zero."""
     variance = np.broadcast_to(np.square(np.asarray(sigma, dtype=float)), (3,))
     cov = np.zeros((6, 6))
+    cov[:3, :3] = rotation_sigma ** 2 * np.eye(3)
     cov[3:, 3:] = (R.T * variance) @ R
     return cov
 
