@@ -611,6 +611,10 @@ def main(argv=None) -> int:
                         f"the map's own points (default {SOURCE_NOISE:g}; 0: none; not with "
                         "--source-frames other, whose halves carry their own sensor noise "
                         "only)")
+    parser.add_argument("--systematic-sigma", default=None, metavar="S|SX,SY,SZ",
+                        help="RegistrationConfig.systematic_sigma for ours (m): an offset "
+                        "common to the whole source that the data cannot show (an "
+                        "independent scan's disagreement with the map; default 0)")
     parser.add_argument("--coarse", default="normals", choices=("normals", "strided"),
                         help="ours' coarse subset: half of it over the surface normals' "
                         "directions (default), or all of it evenly strided (before the "
@@ -626,6 +630,13 @@ def main(argv=None) -> int:
             except ValueError:
                 parser.error(f"--{field.replace('_', '-')} must be a number or 'none', "
                              f"got {value!r}")
+    if args.systematic_sigma is not None:
+        from pipelines.validate import OptionError, systematic_sigma
+
+        try:
+            ours["systematic_sigma"] = systematic_sigma(args.systematic_sigma)
+        except OptionError as exc:
+            parser.error(str(exc))
     if set(args.rooms.split(",")) - set(ROOMS):
         parser.error(f"--rooms must be from {', '.join(ROOMS)}")
     if args.source_frames == "other" and (args.setting != "half" or "scan" in args.rooms):

@@ -289,7 +289,8 @@ def test_noise_zero_gives_the_maps_own_points():
                                   ["--map-phases", "0"],
                                   ["--map-phases", "2", "--map-phase", "random"],
                                   ["--map-phases", "2", "--setting", "part"],
-                                  ["--first-trial", "-1"]])
+                                  ["--first-trial", "-1"], ["--systematic-sigma", "-1"],
+                                  ["--systematic-sigma", "1,2"]])
 def test_benchmark_refuses_a_bad_option(argv, capsys):
     from benchmarks.registration_indoor import main
 
@@ -369,7 +370,8 @@ def test_a_shifted_grid_moves_the_cell_walls():
 
 
 def test_first_trial_sets_the_trials_seeds(monkeypatch):
-    """``--first-trial K``: every map's cell draws its trials from seeds K, K + 1, ..."""
+    """``--first-trial K``: every map's cell draws its trials from seeds K, K + 1, ...;
+    ``--systematic-sigma`` reaches ours' config."""
     import benchmarks.registration_indoor as bench
 
     rng = np.random.default_rng(0)
@@ -381,12 +383,14 @@ def test_first_trial_sets_the_trials_seeds(monkeypatch):
     class StopError(Exception):
         pass
 
-    def run_cell(*args, seed0=0, **kwargs):
-        seeds.append(seed0)
+    def run_cell(*args, seed0=0, ours=None, **kwargs):
+        seeds.append((seed0, ours.get("systematic_sigma")))
         raise StopError
 
     monkeypatch.setattr(bench, "run_cell", run_cell)
-    for argv, seed in ((["--first-trial", "6"], 6), ([], 0)):
+    for argv, seed in ((["--first-trial", "6"], (6, None)), ([], (0, None)),
+                       (["--systematic-sigma", "0.002"], (0, 0.002)),
+                       (["--systematic-sigma", "0.001,0,0.003"], (0, (0.001, 0.0, 0.003)))):
         with pytest.raises(StopError):
             bench.main(["--rooms", "tum", "--maps", "centroids", *argv])
         assert seeds.pop() == seed
