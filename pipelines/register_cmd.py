@@ -158,6 +158,7 @@ def _register(args, source, target, flip=None) -> dict:
         "source_points": len(source), "target_points": len(target),
     }
     diagnostic = getattr(result, "diagnostic", None)
+    plugin = bool(getattr(args, "estimator", None))  # (not run with this config)
     if diagnostic is not None:
         out["covariance_diagnostic"] = {
             "quantisation_pitch_m": diagnostic.quantisation_pitch,
@@ -176,11 +177,9 @@ def _register(args, source, target, flip=None) -> dict:
             "map_error_m": getattr(diagnostic, "map_error", None),
             "plane_tilt_rad": getattr(diagnostic, "plane_tilt", None),
             "lattice_noise_m": getattr(diagnostic, "lattice_noise", None),
-            # (an input: the offset common to the whole source that the data cannot show)
-            "systematic_sigma_m": (None if getattr(args, "estimator", None)
-                                   else config.systematic_sigma),
-            "systematic_rotation_sigma_rad": (None if getattr(args, "estimator", None)
-                                              else config.systematic_rotation_sigma),
+            # (inputs, errors common to the whole source that the data cannot show: ours)
+            "systematic_sigma_m": None if plugin else config.systematic_sigma,
+            "systematic_rotation_sigma_rad": None if plugin else config.systematic_rotation_sigma,
             "covariance_trusted": bool(diagnostic.trusted)}
     alpha = getattr(result, "cauchy_alpha", None)
     if alpha is not None:

@@ -71,6 +71,12 @@ def test_bad_systematic_sigma_is_refused(bad):
             RegistrationConfig(systematic_rotation_sigma=bad)
 
 
+@pytest.mark.parametrize("name", ["systematic_sigma", "systematic_rotation_sigma"])
+def test_none_is_refused_zero_is_none(name):
+    with pytest.raises(EstimationError, match=name):
+        RegistrationConfig(**{name: None})
+
+
 def test_three_values_from_a_list_are_a_tuple():
     assert RegistrationConfig(systematic_sigma=[0.001, 0, 0.003]).systematic_sigma == (
         0.001, 0, 0.003)

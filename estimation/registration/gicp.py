@@ -394,13 +394,17 @@ class RegistrationConfig:
 
     def __post_init__(self):
         coerce_fields(self)
-        sigma = self.systematic_sigma
-        values = sigma if isinstance(sigma, tuple) else (sigma,)
-        if len(values) not in (1, 3) or not all(
-                isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                and v >= 0 for v in values):
-            raise EstimationError(f"systematic_sigma must be a non-negative finite number or "
-                                  f"three of them (m; target x, y, z), got {sigma!r}")
+        # (no None: 0 is "none"; the offset's sigma may also be three, one per target axis)
+        for name, lengths, what in (("systematic_sigma", (1, 3), " or three of them (m; "
+                                     "target x, y, z)"),
+                                    ("systematic_rotation_sigma", (1,), " (rad)")):
+            sigma = getattr(self, name)
+            values = sigma if isinstance(sigma, tuple) else (sigma,)
+            if len(values) not in lengths or not all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool)
+                    and math.isfinite(v) and v >= 0 for v in values):
+                raise EstimationError(f"{name} must be a non-negative finite number{what}, "
+                                      f"got {sigma!r}")
         for name in ("max_correspondence_distance", "cauchy_alpha"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -447,8 +451,7 @@ class RegistrationConfig:
                 raise EstimationError(f"{name} must be a positive finite number or None, "
                                       f"got {value!r}")
         # (pitches; pitches; rad; m)
-        for name in ("map_error", "map_phase_error", "plane_tilt", "lattice_noise",
-                     "systematic_rotation_sigma"):
+        for name in ("map_error", "map_phase_error", "plane_tilt", "lattice_noise"):
             value = getattr(self, name)
             if value is not None and not (isinstance(value, (int, float))
                                           and not isinstance(value, bool)
