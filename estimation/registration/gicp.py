@@ -36,6 +36,7 @@ from .correspondences import (
     _workers,
     grid_cells,
     grid_sample,
+    kd_tree,
     lattice_pitch,
     local_means,
     looks_voxelised,
@@ -1063,7 +1064,7 @@ class Registration:
             if self._source_ready is not None:
                 self._source_tree = self._source_ready.result()
             else:
-                self._source_tree = cKDTree(self.source)
+                self._source_tree = kd_tree(self.source)
         return self._source_tree
 
     def _prepare_source(self) -> None:
@@ -1078,7 +1079,7 @@ class Registration:
         def prepare() -> None:
             try:
                 with queries_beside():
-                    tree = cKDTree(self.source)
+                    tree = kd_tree(self.source)
                     tree_ready.set_result(tree)
                     if self._source_pitch == "unset":
                         self._source_pitch = lattice_pitch(self.source, tree)
@@ -1101,7 +1102,7 @@ class Registration:
     @property
     def target_tree(self) -> cKDTree:
         if self._tree is None:
-            self._tree = cKDTree(self.target)
+            self._tree = kd_tree(self.target)
         return self._tree
 
     @property
@@ -1114,7 +1115,7 @@ class Registration:
     def _dense_share(self, points: np.ndarray, radius: float) -> float:
         """Share of (sampled) points with ``surface_min_points`` neighbours within ``radius``."""
         sample = points[:: max(1, len(points) // 500)]
-        tree = self.target_tree if points is self.target else cKDTree(points)
+        tree = self.target_tree if points is self.target else kd_tree(points)
         counts = tree.query_ball_point(sample, radius * (1 + 1e-6), return_length=True)
         return float(np.mean(counts >= self.config.surface_min_points))
 
@@ -1169,7 +1170,7 @@ class Registration:
         if lazy is not None:
             return lazy.means(corr.source_idx), target
         if self._source_pos is None:  # covariances were given: the means need a query
-            self._source_pos = local_means(self.source, cKDTree(self.source),
+            self._source_pos = local_means(self.source, kd_tree(self.source),
                                            self._means_radius, self.config.surface_min_points)
         return self._source_pos[corr.source_idx], target
 
