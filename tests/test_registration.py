@@ -257,6 +257,28 @@ def test_lazy_covariances_equal_the_full_computation(rng):
     np.testing.assert_allclose(lazy.all(), full, atol=1e-12)
 
 
+def test_kd_tree_answers_as_the_median_split_tree(rng, shared_data):
+    """kd_tree (sliding-midpoint splits, built faster) gives every k-NN query the answer of
+    scipy's default median-split tree: on a real laser scan, a plane, and repeated points."""
+    from benchmarks.registration_indoor import scan_room
+    from estimation.registration.correspondences import kd_tree
+
+    scan = scan_room(shared_data / "octomap" / "scan.dat.bz2")[0][::4]
+    plane = np.c_[rng.uniform(0, 2, (3000, 2)), np.zeros(3000)]
+    repeated = np.repeat(rng.normal(size=(300, 3)), 7, axis=0)
+    for points in (scan, plane, repeated):
+        query = points[::3] + rng.normal(scale=0.02, size=points[::3].shape)
+        for k, bound in ((1, 0.05), (8, 0.4), (20, np.inf)):
+            d_new, i_new = kd_tree(points).query(query, k=k, distance_upper_bound=bound)
+            d_ref, i_ref = cKDTree(points).query(query, k=k, distance_upper_bound=bound)
+            np.testing.assert_array_equal(d_new, d_ref)
+            # (equidistant neighbours may come in either order: repeated points)
+            same = (i_new == i_ref) | np.isclose(
+                np.linalg.norm(points[np.minimum(i_new, len(points) - 1)] - points[
+                    np.minimum(i_ref, len(points) - 1)], axis=-1), 0.0)
+            assert same.all()
+
+
 def test_candidate_cache_and_coarse_subset_keep_the_answer():
     source, _, target, _, T_gt = make_pair(8, 6000)
     init = T_gt @ random_pose(np.random.default_rng(3), 0.1, 0.3)
