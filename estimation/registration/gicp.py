@@ -27,6 +27,7 @@ from scipy.special import ndtr  # (loaded with scipy.spatial already)
 
 from ..config import coerce_fields
 from ..errors import EstimationError
+from ..heap import keep_freed_memory
 from .correspondences import (
     Correspondences,
     LazyCovariances,
@@ -1686,7 +1687,12 @@ class Registration:
         return float(np.sum(omega * cauchy_loss(e, alpha)))
 
     def run(self, init: np.ndarray | gtsam.Pose3 | None = None) -> RegistrationResult:
-        """Return the registration result starting from ``init`` (T_target_source)."""
+        """Return the registration result starting from ``init`` (T_target_source).
+
+        The first call in a process raises glibc's malloc thresholds
+        (:func:`estimation.heap.keep_freed_memory`; ``OCTOFACTOR_KEEP_HEAP=0``: not), so that
+        the iterations' large arrays reuse memory instead of being faulted in again."""
+        keep_freed_memory()
         # the second thread works beside this one throughout (preparations, the reverse):
         # this thread's queries leave it its core (:func:`.correspondences.queries_beside`)
         with queries_beside():
