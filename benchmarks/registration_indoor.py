@@ -393,6 +393,11 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
                            converged=bool(result.converged),
                            trusted=bool(diagnostic is not None and diagnostic.trusted),
                            symmetric=bool(diagnostic is not None and diagnostic.symmetric))
+                if diagnostic is not None:  # (what the trust rules read; NaN: not measured)
+                    row.update(direction_gap=float(diagnostic.direction_gap),
+                               off_surface=float(diagnostic.off_surface),
+                               overlap=[float(v) for v in diagnostic.overlap],
+                               correlation_ratio=float(diagnostic.correlation_ratio))
                 if maps and method == "gicp-se3":
                     P = result.covariance + phase_covariance(source.points, maps, T)
                     row["nees_phase"] = float(nees(err.tangent, P))
