@@ -35,6 +35,7 @@ from benchmarks.registration_indoor import (
 from estimation.covariance import check_consistency, crossed_bootstrap_interval, nees
 from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
 from estimation.registration.correspondences import SemanticIndex, semantic_correspondences
+from estimation.registration.gicp import INSIDE_TRUSTED_COVERAGE
 from estimation.registration.metrics import offset_about_centroid
 
 N_TRIALS = 30
@@ -424,6 +425,12 @@ def test_random_map_phase_gives_each_trial_its_own_map(room, monkeypatch, capsys
     fixed, random = (cells[p]["rows"]["gicp-se3"] for p in ("fixed", "random"))
     for a, b in zip(fixed, random):
         assert a["error_map"] != b["error_map"]  # another map, the same source otherwise
+    for row in fixed + random:  # (--json) what the trust rules read, beside the verdict
+        covered, _ = row["overlap"]
+        assert np.isfinite(row["correlation_ratio"]) and 0.0 <= row["off_surface"] <= 1.0
+        assert np.isnan(row["direction_gap"])  # (inside the map: one direction)
+        assert row["trusted"] == (covered >= INSIDE_TRUSTED_COVERAGE
+                                  and row["off_surface"] <= RegistrationConfig().trust_off_surface)
     cells["fixed"]["rows"]["open3d-gicp"] = fixed  # the report's reference column
     bench.report("tum", "centroids", "small", cells["fixed"])
     assert "about the common error of its 2 runs within 0.1 m" in capsys.readouterr().out
