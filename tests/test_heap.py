@@ -61,18 +61,12 @@ def test_a_warm_registration_reuses_memory_instead_of_faulting_it_in():
     assert kept["faults"][0] < 0.6 * off["faults"][0], (kept, off)
 
 
-def test_the_users_malloc_settings_and_the_opt_out_win():
+@pytest.mark.parametrize("env", [{"OCTOFACTOR_KEEP_HEAP": "0"},
+                                 {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=1"},
+                                 {"MALLOC_MMAP_THRESHOLD_": "65536"}])
+def test_the_users_malloc_settings_and_the_opt_out_win(env, monkeypatch):
     from estimation import heap
 
-    for env in ({"OCTOFACTOR_KEEP_HEAP": "0"}, {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=1"},
-                {"MALLOC_MMAP_THRESHOLD_": "65536"}):
-        saved = {k: os.environ.get(k) for k in env}
-        os.environ.update(env)
-        try:
-            assert heap._raise_thresholds() is False
-        finally:
-            for k, v in saved.items():
-                if v is None:
-                    del os.environ[k]
-                else:
-                    os.environ[k] = v
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    assert heap._raise_thresholds() is False
