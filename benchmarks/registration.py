@@ -169,13 +169,9 @@ def factor_ablation(n: int = 10000) -> None:
           f"(ratio {t_single / t_batched:.0f}x)")
 
 
-START_UP_PROBE = """
-import sys, time
-sys.path.insert(0, {root!r})
-t0 = time.perf_counter()
-import numpy as np
-from estimation.registration import Registration, RegistrationConfig
-t1 = time.perf_counter()
+# the start-up pair (10k points: a plane, a ramp, a wave; src, tgt), as code that a new
+# process runs with numpy imported (tests/test_heap.py registers it too)
+START_UP_PAIR = """
 rng = np.random.default_rng(0)
 n = 10000
 pts = np.c_[rng.uniform(0, 4, n), rng.uniform(0, 4, n), np.zeros(n)]
@@ -183,6 +179,16 @@ pts[: n // 2, 2] = pts[: n // 2, 0] * 0.3
 pts[n // 4: n // 2, 2] += np.sin(pts[n // 4: n // 2, 1])
 tgt = pts + rng.normal(0, 0.005, pts.shape)
 src = pts[rng.permutation(n)] + rng.normal(0, 0.005, pts.shape)
+"""
+
+START_UP_PROBE = """
+import sys, time
+sys.path.insert(0, {root!r})
+t0 = time.perf_counter()
+import numpy as np
+from estimation.registration import Registration, RegistrationConfig
+t1 = time.perf_counter()
+""" + START_UP_PAIR + """
 times = []
 for _ in range(3):
     t = time.perf_counter()

@@ -10,22 +10,20 @@ from pathlib import Path
 
 import pytest
 
+from benchmarks.registration import START_UP_PAIR
+from estimation import heap
+
 ROOT = Path(__file__).resolve().parents[1]
 
-# a new process registers one 10k-point pair three times (the start-up benchmark's pair) and
-# prints each call's minor page faults, and what keep_freed_memory reports
+# a new process registers the start-up benchmark's 10k-point pair three times and prints each
+# call's minor page faults, and what keep_freed_memory reports
 PROBE = """
 import json, resource, sys
 sys.path.insert(0, {root!r})
 import numpy as np
 from estimation.heap import keep_freed_memory
 from estimation.registration import Registration, RegistrationConfig
-rng = np.random.default_rng(0)
-n = 10000
-pts = np.c_[rng.uniform(0, 4, n), rng.uniform(0, 4, n), np.zeros(n)]
-pts[: n // 2, 2] = pts[: n // 2, 0] * 0.3
-tgt = pts + rng.normal(0, 0.005, pts.shape)
-src = pts[rng.permutation(n)] + rng.normal(0, 0.005, pts.shape)
+""" + START_UP_PAIR.replace("{", "{{").replace("}", "}}") + """
 faults = []
 for _ in range(3):
     before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
@@ -37,8 +35,7 @@ print(json.dumps({{"faults": faults, "kept": keep_freed_memory()}}))
 
 def _probe(**env: str) -> dict:
     environ = {k: v for k, v in os.environ.items()
-               if k not in ("OCTOFACTOR_KEEP_HEAP", "MALLOC_MMAP_THRESHOLD_",
-                            "MALLOC_TRIM_THRESHOLD_", "GLIBC_TUNABLES")}
+               if k not in ("OCTOFACTOR_KEEP_HEAP", *heap._ENV_SETTINGS)}
     environ.update(env)
     out = subprocess.run([sys.executable, "-c", PROBE.format(root=str(ROOT))],
                          capture_output=True, text=True, check=True, env=environ, timeout=300)
@@ -65,8 +62,6 @@ def test_a_warm_registration_reuses_memory_instead_of_faulting_it_in():
                                  {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=1"},
                                  {"MALLOC_MMAP_THRESHOLD_": "65536"}])
 def test_the_users_malloc_settings_and_the_opt_out_win(env, monkeypatch):
-    from estimation import heap
-
     for name, value in env.items():
         monkeypatch.setenv(name, value)
     assert heap._raise_thresholds() is False
