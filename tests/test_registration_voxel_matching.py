@@ -264,3 +264,30 @@ def test_same_cell_matches_the_cell_lookup(rng, dense):
         np.testing.assert_array_equal(out.distances[~move & same], corr.distances[~move & same])
         np.testing.assert_array_equal(out.weights, corr.weights)
         np.testing.assert_array_equal(out.source_idx, corr.source_idx)
+
+
+@pytest.mark.parametrize("pairs", [3000, 2 * gicp.SPLIT_PAIRS + 1])
+def test_one_whitening_per_centroid_is_each_pairs_own(rng, pairs):
+    """The pairs of one centroid share its covariance and their pooled one, so their
+    whitening is computed once and shared: the same numbers as each pair's own, with few
+    and with many pairs (half of them on the second thread)."""
+    from estimation.registration.correspondences import Correspondences
+    from estimation.registration.factors import pooled_covariances, whitening_rows
+
+    room = thick_room(rng)
+    map_points = centroids(room, 0.03, np.array([0.011, -0.007, 0.02]))
+    source = room[rng.choice(len(room), 5000, replace=False)]
+    reg = Registration(source, map_points, RegistrationConfig())
+    reg._grid = voxel_grid(map_points)
+    assert reg._grid is not None
+    # a few hundred centroids, each matched by many pairs, some by one
+    target_idx = rng.integers(0, 400, pairs)
+    source_idx = rng.integers(0, len(source), pairs)
+    corr = Correspondences(source_idx, target_idx, np.ones(pairs), np.zeros(pairs), len(source))
+    R = gtsam.Rot3.Rodrigues(0.3, -0.2, 0.1).matrix()
+    cov_t, cov_s = reg.target_cov.all(), reg.source_cov.all()
+    pooled, rows = pooled_covariances(cov_s, source_idx, target_idx, len(map_points))
+    expected = whitening_rows(cov_t, target_idx, pooled, rows, R)
+    np.testing.assert_array_equal(reg._whitening(corr, R), expected)
+    # (not each point's own covariance: the pooling is in force)
+    assert not np.allclose(expected, whitening_rows(cov_t, target_idx, cov_s, source_idx, R))

@@ -1524,15 +1524,28 @@ class Registration:
         if self.config.pooled_source_covariance and isinstance(self._grid, VoxelGrid):
             # a centroid is the plain mean of its cell's points: the source points matched
             # to it share one covariance (the mean of theirs), so that their whitened
-            # residuals sum to the whitened offset of their own mean from it (below)
-            cov_s, rows = pooled_covariances(cov_s, rows, corr.target_idx, len(self.target))
-        if len(corr) < SPLIT_PAIRS:
-            return whitening_rows(cov_t, corr.target_idx, cov_s, rows, R)
+            # residuals sum to the whitened offset of their own mean from it (below). Its
+            # pairs then share both covariances: one whitening per centroid serves them all
+            # (the same numbers; the scan's 15k-point halves match 1.9 points a centroid,
+            # 1.5 -> 1.1 ms a call)
+            cov_s, group = pooled_covariances(cov_s, rows, corr.target_idx, len(self.target))
+            centroid = np.empty(len(cov_s), np.int64)
+            centroid[group] = corr.target_idx
+            return self._whitening_rows(cov_t, centroid, cov_s, np.arange(len(cov_s)),
+                                        R)[group]
+        return self._whitening_rows(cov_t, corr.target_idx, cov_s, rows, R)
+
+    @staticmethod
+    def _whitening_rows(cov_t: np.ndarray, target_rows: np.ndarray, cov_s: np.ndarray,
+                        source_rows: np.ndarray, R: np.ndarray) -> np.ndarray:
+        """:func:`whitening_rows`, half of many rows on the second thread."""
+        if len(target_rows) < SPLIT_PAIRS:
+            return whitening_rows(cov_t, target_rows, cov_s, source_rows, R)
         # many pairs: half of them on the second thread (the same rows either way)
-        out, h = np.zeros((len(corr), 3, 3)), len(corr) // 2
-        rest = _Beside(whitening_rows_into, out[h:], cov_t, corr.target_idx[h:], cov_s,
-                       rows[h:], R)
-        whitening_rows_into(out[:h], cov_t, corr.target_idx[:h], cov_s, rows[:h], R)
+        out, h = np.zeros((len(target_rows), 3, 3)), len(target_rows) // 2
+        rest = _Beside(whitening_rows_into, out[h:], cov_t, target_rows[h:], cov_s,
+                       source_rows[h:], R)
+        whitening_rows_into(out[:h], cov_t, target_rows[:h], cov_s, source_rows[:h], R)
         rest.result()
         return out
 
