@@ -222,20 +222,26 @@ def test_one_covariance_per_centroid_is_more_accurate_on_a_dense_kinect_half(cen
     assert np.median(ratio) < 0.7 and np.mean(pooled) < 0.6 * np.mean(own), (pooled, own)
 
 
-@pytest.mark.parametrize("dense", [True, False])
-def test_same_cell_matches_the_cell_lookup(rng, dense):
+@pytest.mark.parametrize("lookup", ["table", "columns", "sorted"])
+def test_same_cell_matches_the_cell_lookup(rng, lookup, monkeypatch):
     """The one-pass kernel gives the pairs of the cell lookup: each flagged pair's source
     point, moved, matched to its own cell's map point (of the target's label, with labels),
-    distances recomputed, others untouched; with the dense table and with the sorted
-    cells."""
+    distances recomputed, others untouched; with the dense table, with the sorted cells
+    searched by column (a box too large for the table) and with the sorted cells alone."""
     from dataclasses import replace
 
-    from estimation.registration.correspondences import Correspondences
+    from estimation.registration import correspondences
+    from estimation.registration.correspondences import Correspondences, grid_cells
 
     room = thick_room(rng)
     map_points = centroids(room, 0.03, np.array([0.011, -0.007, 0.02]))
     grid = voxel_grid(map_points)
-    if not dense:
+    assert grid.table is not None and grid.columns is None
+    if lookup == "columns":  # the box's cells beyond the table, its columns within it
+        monkeypatch.setattr(correspondences, "GRID_TABLE_CELLS", int(np.prod(grid.dims[:2])))
+        grid = grid_cells(map_points, grid.pitch, grid.origin)
+        assert grid.table is None and grid.columns is not None
+    elif lookup == "sorted":
         grid = replace(grid, table=None)
     labels = rng.integers(0, 3, len(map_points)).astype(np.int64)
     source = room[rng.choice(len(room), 3000)] + rng.normal(scale=0.01, size=(3000, 3))

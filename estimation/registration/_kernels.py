@@ -666,16 +666,19 @@ def normalise_keep(src, tgt, omega, dist, n, posterior, min_weight):
 
 @numba.njit(cache=True)
 def same_voxel_pairs(T, source, source_idx, target_idx, distances, aligned, target, origin,
-                     pitch, lo, dims, table, cells, cell_rows, labels, check_labels):
+                     pitch, lo, dims, table, columns, cells, cell_rows, labels, check_labels):
     """Same-voxel matching of the pairs flagged ``aligned``: the source point (moved by T)
     is matched to its own cell's map point where the cell holds one (the dense ``table`` of
-    the map's box when it has rows, else a binary search of the sorted ``cells``), of the
-    pair's target's label where ``check_labels``. Returns the new (target rows, distances)."""
+    the map's box when it has rows, else a binary search of the sorted ``cells``: of the
+    cell's (i, j) column, which begins at ``columns[i dims_1 + j]``, when that has rows), of
+    the pair's target's label where ``check_labels``. Returns the new (target rows,
+    distances)."""
     m = source_idx.shape[0]
     new_target = target_idx.copy()
     new_dist = distances.copy()
     n_cells = cells.shape[0]
     dense = table.shape[0] > 0
+    by_column = columns.shape[0] > 0
     for p in range(m):
         if not aligned[p]:
             continue
@@ -691,6 +694,10 @@ def same_voxel_pairs(T, source, source_idx, target_idx, distances, aligned, targ
         key = (k0 * dims[1] + k1) * dims[2] + k2
         if dense:
             row = np.int64(table[key])
+        elif by_column:
+            first, end = columns[k0 * dims[1] + k1], columns[k0 * dims[1] + k1 + 1]
+            pos = first + np.searchsorted(cells[first:end], key)
+            row = cell_rows[pos] if pos < end and cells[pos] == key else -1
         else:
             pos = min(np.searchsorted(cells, key), n_cells - 1)
             row = cell_rows[pos] if cells[pos] == key else -1

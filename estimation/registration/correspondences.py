@@ -376,6 +376,10 @@ class VoxelGrid:
     rows: np.ndarray = field(repr=False)
 
     table: np.ndarray | None = field(default=None, repr=False)
+    # without a table: where each (i, j) column's cells begin in ``cells`` (a box whose
+    # columns fit GRID_TABLE_CELLS; OctoMap's scan at 3 cm spans 17.5M cells in 140k columns:
+    # same-voxel matching searches a column's few cells, 1.4 -> 0.4 ms for 13.5k pairs)
+    columns: np.ndarray | None = field(default=None, repr=False)
 
     def lookup(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Return (hit (M,) bool, the map row of the cell each point lies in, -1 where the
@@ -407,10 +411,11 @@ class VoxelGrid:
         weights kept. (One pass, as :meth:`lookup`; the rooms' 150k-point sources spent
         18 ms an iteration here in numpy.)"""
         table = _NO_CELLS if self.table is None else self.table
+        columns = _NO_LABELS if self.columns is None else self.columns
         target_idx, distances = _kernels.same_voxel_pairs(
             np.ascontiguousarray(T, dtype=float), source, corr.source_idx, corr.target_idx,
             corr.distances, np.ascontiguousarray(aligned, dtype=bool), target, self.origin,
-            float(self.pitch), self.lo, self.dims, table, self.cells, self.rows,
+            float(self.pitch), self.lo, self.dims, table, columns, self.cells, self.rows,
             _NO_LABELS if labels is None else labels, labels is not None)
         return Correspondences(corr.source_idx, target_idx, corr.weights, distances,
                                corr.n_source)
@@ -558,11 +563,14 @@ def grid_cells(points: np.ndarray, pitch: float, origin: np.ndarray,
     keep = np.ones(len(cells), bool)
     keep[repeat] = False
     cells, rows = cells[keep], order[keep]
-    table = None
+    table = columns = None
     if int(np.prod(dims)) <= GRID_TABLE_CELLS:
         table = np.full(int(np.prod(dims)), -1, dtype=np.int32)
         table[cells] = rows
-    return VoxelGrid(pitch, origin, resultant, shared, lo, dims, cells, rows, table)
+    elif int(dims[0] * dims[1]) <= GRID_TABLE_CELLS:
+        # the sorted cells of each (i, j) column begin at columns[i dims_1 + j]
+        columns = np.searchsorted(cells, np.arange(dims[0] * dims[1] + 1) * dims[2])
+    return VoxelGrid(pitch, origin, resultant, shared, lo, dims, cells, rows, table, columns)
 
 
 @dataclass(frozen=True)
