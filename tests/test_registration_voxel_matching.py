@@ -297,3 +297,20 @@ def test_one_whitening_per_centroid_is_each_pairs_own(rng, pairs):
     np.testing.assert_array_equal(reg._whitening(corr, R), expected)
     # (not each point's own covariance: the pooling is in force)
     assert not np.allclose(expected, whitening_rows(cov_t, target_idx, cov_s, source_idx, R))
+
+
+def test_the_resultants_are_those_of_each_frequency_taken_alone(rng):
+    """The grid search's resultant lengths, turned from one frequency to the next in one
+    kernel, are |mean of w exp(2 pi i f x)| of each frequency computed afresh (weighted
+    and not)."""
+    from estimation.registration.correspondences import _resultants
+
+    x = rng.normal(scale=2.0, size=(3000, 3))
+    weights = rng.uniform(0.0, 1.0, size=(3000, 3))
+    frequencies = np.linspace(20.0, 45.0, 60)
+    for w in (None, weights):
+        share = np.full(x.shape, 1.0 / len(x)) if w is None else w / w.sum(axis=0)
+        expected = np.array([np.abs((share * np.exp(2j * np.pi * f * x)).sum(axis=0))
+                             for f in frequencies])
+        np.testing.assert_allclose(_resultants(x, frequencies, w), expected, rtol=1e-9,
+                                   atol=1e-12)

@@ -5,6 +5,8 @@ whole whitening / residual / Jacobian in one pass. Compiled on first use and cac
 """
 from __future__ import annotations
 
+import math
+
 import numba
 import numpy as np
 
@@ -738,3 +740,31 @@ def pooled_rows(cov: np.ndarray, source_rows: np.ndarray, target_rows: np.ndarra
             for b in range(3):
                 sums[j, a, b] /= counts[j]
     return sums, group
+
+
+@numba.njit(cache=True)
+def resultant_lengths(re, im, turn_re, turn_im, count):
+    """The (count, d) lengths ``|sum_m terms[m, a]|`` of the complex (M, d) terms ``re + i im``
+    and of the terms multiplied by ``turn`` once, twice, ... (``count`` in all): numpy's
+    ``abs(terms.sum(axis=0))`` then ``terms *= turn`` (to the last bit or two: numpy's
+    vectorised product and abs round differently), without a numpy call per step (8000 of
+    them took 14 ms of a registration's second thread on the scan's 15k-point halves)."""
+    m, d = re.shape
+    re = re.copy()
+    im = im.copy()
+    out = np.empty((count, d))
+    for k in range(count):
+        for a in range(d):
+            sr = re[0, a]
+            si = im[0, a]
+            for j in range(1, m):
+                sr += re[j, a]
+                si += im[j, a]
+            out[k, a] = math.hypot(sr, si)
+        for j in range(m):
+            for a in range(d):
+                r, i = re[j, a], im[j, a]
+                tr, ti = turn_re[j, a], turn_im[j, a]
+                re[j, a] = r * tr - i * ti
+                im[j, a] = r * ti + i * tr
+    return out

@@ -340,11 +340,10 @@ def _resultants(x: np.ndarray, frequencies: np.ndarray, weights: np.ndarray | No
     terms = w * np.exp((2j * np.pi * frequencies[0]) * x)
     turn = np.exp((2j * np.pi * (frequencies[-1] - frequencies[0])
                    / max(len(frequencies) - 1, 1)) * x)
-    out = np.empty((len(frequencies), x.shape[1]))
-    for k in range(len(frequencies)):
-        out[k] = np.abs(terms.sum(axis=0))
-        terms *= turn
-    return out
+    return _kernels.resultant_lengths(np.ascontiguousarray(terms.real),
+                                      np.ascontiguousarray(terms.imag),
+                                      np.ascontiguousarray(turn.real),
+                                      np.ascontiguousarray(turn.imag), len(frequencies))
 
 
 def _in_plane(points: np.ndarray, tree: cKDTree, rows: np.ndarray,
