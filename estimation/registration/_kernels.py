@@ -755,9 +755,9 @@ def resultant_lengths(re, im, turn_re, turn_im, count):
     out = np.empty((count, d))
     for k in range(count):
         for a in range(d):
-            sr = re[0, a]
-            si = im[0, a]
-            for j in range(1, m):
+            sr = 0.0
+            si = 0.0
+            for j in range(m):
                 sr += re[j, a]
                 si += im[j, a]
             out[k, a] = math.hypot(sr, si)
