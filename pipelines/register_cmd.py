@@ -4,7 +4,8 @@ order everywhere: the headset cloud is registered to the map).
 Both read semantic PLY files (perception.semantic_cloud layout; plain x y z PLYs work for
 ``--method gicp``), run GICP-SE(3) or Semantic-ICP and write RESULT.json with T
 (T_target_source, 4x4), covariance (6x6, [rotation, translation]), converged, reason,
-iterations, inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
+iterations, rescued (Semantic-ICP's second start: ``RegistrationConfig.semantic_rescue``),
+inliers, fitness, rmse, time_s, covariance_diagnostic (quantisation pitch,
 model-error share, correlation ratio, re-association gain, symmetric, direction gap, overlap,
 off-surface share, voxel pitch of same-voxel matching, cell-crossing bias, map error, plane
 tilt, covariance_trusted) and, with --gt, d_se3 (eq. (9)),
@@ -152,6 +153,7 @@ def _register(args, source, target, flip=None) -> dict:
         "T": np.asarray(result.T).tolist(), "covariance": np.asarray(result.covariance).tolist(),
         "converged": bool(result.converged), "reason": getattr(result, "reason", ""),
         "iterations": getattr(result, "iterations", None),
+        "rescued": bool(getattr(result, "rescued", False)),
         "inliers": getattr(result, "inliers", None), "fitness": getattr(result, "fitness", None),
         "rmse": getattr(result, "rmse", None), "time_s": elapsed,
         "cost_log": list(getattr(result, "cost_log", [])),
@@ -246,6 +248,8 @@ def _write(path: str, out: dict) -> None:
 def _summary(out: dict) -> str:
     """One line; a plug-in's result may not report iterations, inliers or a reason."""
     parts = [f"converged={out['converged']}" + (f" ({out['reason']})" if out["reason"] else "")]
+    if out.get("rescued"):
+        parts.append("second start with geometric annealing (the first was not trusted)")
     for key, unit in (("iterations", "iterations"), ("inliers", "inliers")):
         if out[key] is not None:
             parts.append(f"{out[key]} {unit}")
