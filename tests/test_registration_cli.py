@@ -37,6 +37,7 @@ def test_register_writes_result_with_errors(tmp_path):
         assert np.array(data["covariance"]).shape == (6, 6)
         assert data["d_se3"] < 0.01 and data["t_err_m"] < 0.005 and data["r_err_rad"] < 0.002
         assert data["time_s"] > 0 and data["iterations"] >= 1
+        assert data["rescued"] is False  # (no annealing: one start)
         diagnostic = data["covariance_diagnostic"]
         assert diagnostic["quantisation_pitch_m"] is None  # measured-like clouds: no lattice
         assert isinstance(diagnostic["covariance_trusted"], bool)
@@ -102,3 +103,6 @@ def test_the_summary_says_why_the_covariance_is_not_trusted():
     out["converged"] = True
     out["covariance_diagnostic"]["covariance_trusted"] = True
     assert "not trusted" not in _summary(out)
+    assert "second start" not in _summary(out)
+    out["rescued"] = True  # (Semantic-ICP's second start, geometric annealing)
+    assert "second start with geometric annealing" in _summary(out)
