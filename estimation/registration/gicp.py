@@ -1724,6 +1724,9 @@ class Registration:
     def run(self, init: np.ndarray | gtsam.Pose3 | None = None) -> RegistrationResult:
         """Return the registration result starting from ``init`` (T_target_source).
 
+        Semantic-ICP whose annealed result is not trusted starts once more with its
+        annealing stages matched geometrically (``RegistrationConfig.semantic_rescue``).
+
         The first call in a process raises glibc's malloc thresholds
         (:func:`estimation.heap.keep_freed_memory`; ``OCTOFACTOR_KEEP_HEAP=0``: not), so that
         the iterations' large arrays reuse memory instead of being faulted in again."""
