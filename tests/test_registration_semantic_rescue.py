@@ -13,25 +13,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_registration_coarse_sampling import icl_half_room_starts
 
-from benchmarks.registration import D_FINAL, OFFSETS, register_ours
-from benchmarks.registration_indoor import SOURCE_NOISE, SOURCE_POINTS, half_room_source
+from benchmarks.registration import register_ours
 from estimation.registration import pose_error
-from estimation.registration.metrics import offset_about_centroid
-
-
-def _start(room, seed):
-    points, labels, target = room
-    rng = np.random.default_rng(seed)
-    source, T_gt = half_room_source(points, labels, rng, SOURCE_POINTS, SOURCE_NOISE)
-    metres, degrees, d0 = OFFSETS["small"]
-    init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), metres, degrees)
-    return source, target, init, T_gt, (d0, D_FINAL)
 
 
 @pytest.mark.parametrize("seed", [19, 22])
 def test_an_untrusted_semantic_run_is_rescued_by_geometric_annealing(centroid_room, seed):
-    source, target, init, T_gt, stages = _start(centroid_room("icl", 5), seed)
+    source, target, init, T_gt, stages = next(icl_half_room_starts(centroid_room, (seed,)))
     first, _ = register_ours(source, target, init, stages, semantic=True,
                              semantic_rescue=False)
     assert pose_error(first.T, T_gt).t_err_m > 0.1  # (the class-restricted minimum)
@@ -44,7 +34,7 @@ def test_an_untrusted_semantic_run_is_rescued_by_geometric_annealing(centroid_ro
 
 
 def test_a_trusted_run_and_gicp_are_left_as_they_are(centroid_room):
-    source, target, init, T_gt, stages = _start(centroid_room("icl", 5), 20)
+    source, target, init, T_gt, stages = next(icl_half_room_starts(centroid_room, (20,)))
     once, _ = register_ours(source, target, init, stages, semantic=True, semantic_rescue=False)
     result, _ = register_ours(source, target, init, stages, semantic=True)
     assert once.diagnostic.trusted and not result.rescued
