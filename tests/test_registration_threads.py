@@ -257,3 +257,39 @@ def test_the_second_thread_prefetches_before_it_searches_the_maps_grid(monkeypat
     assert result.converged
     assert submitted.count("_partial_cells_grid") == 1
     assert submitted.index("prefetch") < submitted.index("_partial_cells_grid")
+
+
+def test_the_class_trees_are_built_on_the_second_thread_after_the_sources_tree(monkeypatch):
+    """Semantic-ICP's class trees (SemanticIndex) are built on the second thread, after the
+    source's tree, once per registration, and give the same result as built on this one."""
+    source, labels_s, target, labels_t, T_gt = make_pair(4)
+    probs_s, probs_t = one_hot(labels_s, acc=0.9), one_hot(labels_t, acc=0.9)
+    built = []
+    plain = gicp.SemanticIndex
+
+    def spy(*args, **kwargs):
+        if args[0] is target:  # (the symmetric estimate's reverse direction has its own)
+            built.append(threading.current_thread() is threading.main_thread())
+        return plain(*args, **kwargs)
+
+    executor = gicp._reverse_executor()
+    submitted, submit = [], executor.submit
+
+    def record(fn, *args, **kwargs):
+        submitted.append(getattr(fn, "__qualname__", "").rpartition(".")[2])
+        return submit(fn, *args, **kwargs)
+
+    monkeypatch.setattr(gicp, "SemanticIndex", spy)
+    monkeypatch.setattr(executor, "submit", record)
+    config = RegistrationConfig(max_correspondence_distance=0.2,
+                                initial_correspondence_distance=0.8, decay=0.5)
+    beside = Registration(source, target, config, probs_s, probs_t).run(T_gt)
+    assert beside.converged, beside.reason
+    assert built == [False]  # once, not on the main thread
+    assert submitted.index("spy") == submitted.index("prepare") + 1  # the source's tree first
+    # built on this thread (the preparation switched off): the same bits
+    monkeypatch.setattr(Registration, "_prepare_index", lambda self: None)
+    here = Registration(source, target, config, probs_s, probs_t).run(T_gt)
+    assert built == [False, True]
+    np.testing.assert_array_equal(here.T, beside.T)
+    np.testing.assert_array_equal(here.covariance, beside.covariance)

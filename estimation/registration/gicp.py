@@ -1021,6 +1021,7 @@ class Registration:
         self._tree: cKDTree | None = None
         self._source_tree: cKDTree | None = None
         self._index: SemanticIndex | None = None
+        self._index_ready: Future | None = None  # the index being built (_prepare_index)
         # Semantic-ICP: the source's top classes and argmax labels (made at the first E-step)
         self._source_classes: tuple[np.ndarray, np.ndarray] | None = None
         self._block: float | None = None
@@ -1238,8 +1239,20 @@ class Registration:
     @property
     def semantic_index(self) -> SemanticIndex:
         if self._index is None:
-            self._index = SemanticIndex(self.target, self.target_probs)
+            ready, self._index_ready = self._index_ready, None
+            self._index = (ready.result() if ready is not None
+                           else SemanticIndex(self.target, self.target_probs))
         return self._index
+
+    def _prepare_index(self) -> None:
+        """Semantic-ICP: build the target's class trees (:class:`SemanticIndex`) on the second
+        thread, after the source's tree (:meth:`_prepare_source`), while this thread
+        computes the coarse rows' covariances; the first E-step waits for them (the same
+        trees either way; every target point has a class, its most probable one). The
+        scan's 34k-point map: 6.5 ms of this thread's work per registration."""
+        if self.semantic and self._index is None and self._index_ready is None:
+            self._index_ready = _reverse_executor().submit(SemanticIndex, self.target,
+                                                           self.target_probs)
 
     def _failed(self, T: np.ndarray, reason: str, start: float, iterations: int = 0,
                 cost_log=()) -> RegistrationResult:
@@ -1781,9 +1794,8 @@ class Registration:
         if len(self.source) < cfg.min_inliers or len(self.target) < cfg.min_inliers:
             return self._failed(T, f"too few points: source {len(self.source)}, target "
                                    f"{len(self.target)} (need {cfg.min_inliers})", start)
-        if self.semantic and len(self.semantic_index.trees) == 0:
-            return self._failed(T, "target has no labelled points", start)
         self._prepare_source()
+        self._prepare_index()
         key = gtsam.symbol("t", 0)
         d_final = cfg.max_correspondence_distance
         d = max(cfg.initial_correspondence_distance or d_final, d_final)
