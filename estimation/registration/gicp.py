@@ -737,6 +737,16 @@ def _creep_ratio(step: np.ndarray, last: np.ndarray | None,
     return float(norm / norm_last)
 
 
+def step_in_sigmas(xi: np.ndarray, H: np.ndarray, w: np.ndarray, e: np.ndarray) -> float:
+    """Return the length of the Gauss-Newton step ``xi`` (tangent vector) in standard
+    deviations of the estimate it came from: ``sqrt(xi^T H xi / s^2)``, with ``H`` the
+    pairs' weighted normal matrix ``sum w J^T J`` (whitened), and ``s^2 = sum w e / (3 sum w)``
+    their mean whitened squared residual ``e`` per axis (``s^2 H^-1``: the estimate's i.i.d.
+    covariance)."""
+    s2 = float(np.sum(w * e)) / (3.0 * max(float(np.sum(w)), 1e-300))
+    return float(np.sqrt(max(float(xi @ H @ xi), 0.0) / max(s2, 1e-300)))
+
+
 def _extrapolated(T_new: np.ndarray, step: np.ndarray, rho: float | None
                   ) -> tuple[np.ndarray, np.ndarray | None]:
     """Return (the pose to go on from, the step to remember) after the Gauss-Newton step
@@ -1887,8 +1897,7 @@ class Registration:
                 # the settle's step within the estimate's noise (after its first step)
                 within = (SETTLE_WITHIN_SIGMA is not None and self._settled
                           and stage_iterations >= 2 and H is not None
-                          and float(xi @ H @ xi) * 3.0 * float(np.sum(w))
-                          < SETTLE_WITHIN_SIGMA ** 2 * max(float(np.sum(w * e)), 1e-300))
+                          and step_in_sigmas(xi, H, w, e) < SETTLE_WITHIN_SIGMA)
                 if (settles and not self._settled and (step < cfg.tolerance or two_cycle)
                         and not coarse_first and d * cfg.decay <= d_final * (1 + 1e-9)):
                     # Semantic-ICP's last annealing stage has converged with the paper's
