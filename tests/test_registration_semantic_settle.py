@@ -17,9 +17,8 @@ from benchmarks.registration import register_ours
 from estimation.registration import RegistrationConfig, gicp, pose_error, semantic_icp
 
 
-def estep_schedule(monkeypatch, config: RegistrationConfig, seed: int = 4):
-    """Return [(d_max, posterior)] of every E-step of a Semantic-ICP run on the corner scene,
-    and the run's pose error."""
+def recorded_esteps(monkeypatch) -> list[tuple[float, bool]]:
+    """Return the list into which every later E-step appends its (d_max, posterior)."""
     calls = []
     real = gicp.semantic_correspondences
 
@@ -28,6 +27,13 @@ def estep_schedule(monkeypatch, config: RegistrationConfig, seed: int = 4):
         return real(*args, **kwargs)
 
     monkeypatch.setattr(gicp, "semantic_correspondences", spy)
+    return calls
+
+
+def estep_schedule(monkeypatch, config: RegistrationConfig, seed: int = 4):
+    """Return [(d_max, posterior)] of every E-step of a Semantic-ICP run on the corner scene,
+    and the run's pose error."""
+    calls = recorded_esteps(monkeypatch)
     source, labels_s, target, labels_t, T_gt = make_pair(seed)
     result = semantic_icp(source, one_hot(labels_s, acc=0.9), target,
                           one_hot(labels_t, acc=0.9), config=config)
@@ -98,17 +104,10 @@ def test_wrong_labels_do_not_pull_semantic_icp_along_the_weak_axis(centroid_room
 def settle_length(monkeypatch, within, source, target, init, stages):
     """Return (the posterior E-steps of the last annealing stage, the result) of a Semantic-ICP
     run with ``SETTLE_WITHIN_SIGMA`` = ``within``."""
-    calls = []
-    real = gicp.semantic_correspondences
-
-    def spy(*args, **kwargs):
-        calls.append((args[3], kwargs["posterior"]))
-        return real(*args, **kwargs)
-
-    monkeypatch.setattr(gicp, "semantic_correspondences", spy)
-    monkeypatch.setattr(gicp, "SETTLE_WITHIN_SIGMA", within)
-    result, _ = register_ours(source, target, init, stages, semantic=True)
-    monkeypatch.setattr(gicp, "semantic_correspondences", real)
+    with monkeypatch.context() as patched:  # (undone after the run: no spies stacked)
+        patched.setattr(gicp, "SETTLE_WITHIN_SIGMA", within)
+        calls = recorded_esteps(patched)
+        result, _ = register_ours(source, target, init, stages, semantic=True)
     return sum(p for d, p in calls if d > stages[-1] * (1 + 1e-9)), result
 
 
@@ -117,21 +116,15 @@ def test_the_settle_stops_within_the_estimates_noise_on_the_simulated_room(monke
     # the settle's steps after its first are a walk of 0.2-5 of the estimate's standard
     # deviations, and to the tolerance it ran 7-10 E-steps (thirty-second round)
     from estimation.registration.metrics import offset_about_centroid
-    from perception.simulation.room import (
-        VIEWPOINTS,
-        RoomConfig,
-        build_room,
-        headset_cloud,
-        robot_semantic_map,
-    )
+    from perception.simulation import room as simulated
 
-    cfg = RoomConfig(seed=0)
-    room = build_room(cfg)
-    cloud = robot_semantic_map(room, cfg)
+    cfg = simulated.RoomConfig(seed=0)
+    room = simulated.build_room(cfg)
+    cloud = simulated.robot_semantic_map(room, cfg)
     default = gicp.SETTLE_WITHIN_SIGMA
     lengths = {default: [], None: []}
-    for view in VIEWPOINTS:
-        headset, T_gt = headset_cloud(room, view, cfg)
+    for view in simulated.VIEWPOINTS:
+        headset, T_gt = simulated.headset_cloud(room, view, cfg)
         rng = np.random.default_rng(10017)
         source, target = headset.subsample(10000, rng), cloud.subsample(30000, rng)
         init = T_gt @ offset_about_centroid(np.random.default_rng(10000),
