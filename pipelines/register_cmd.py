@@ -179,6 +179,7 @@ def _register(args, source, target, flip=None) -> dict:
             "map_error_m": getattr(diagnostic, "map_error", None),
             "plane_tilt_rad": getattr(diagnostic, "plane_tilt", None),
             "lattice_noise_m": getattr(diagnostic, "lattice_noise", None),
+            "inplane_quantisation": bool(getattr(diagnostic, "inplane_quantisation", False)),
             # (inputs, errors common to the whole source that the data cannot show: ours)
             "systematic_sigma_m": None if plugin else config.systematic_sigma,
             "systematic_rotation_sigma_rad": None if plugin else config.systematic_rotation_sigma,

@@ -40,6 +40,7 @@ def test_register_writes_result_with_errors(tmp_path):
         assert data["rescued"] is False  # (no annealing: one start)
         diagnostic = data["covariance_diagnostic"]
         assert diagnostic["quantisation_pitch_m"] is None  # measured-like clouds: no lattice
+        assert diagnostic["inplane_quantisation"] is False  # (a lattice term)
         assert isinstance(diagnostic["covariance_trusted"], bool)
         assert diagnostic["correlation_ratio"] > 0 and diagnostic["model_error_share"] == 0
         # off a lattice: the midpoint of both directions, with their disagreement

@@ -20,7 +20,13 @@ from test_registration import make_pair
 from estimation.covariance import check_consistency, nees
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, pose_error
-from estimation.registration.gicp import plane_groups, quantisation_information, tilted_groups
+from estimation.registration.factors import gicp_terms
+from estimation.registration.gicp import (
+    inplane_information,
+    plane_groups,
+    quantisation_information,
+    tilted_groups,
+)
 from estimation.registration.metrics import offset_about_centroid
 
 
@@ -379,3 +385,37 @@ def test_real_scan_splits_covariance_is_consistent(shared_data):
     assert np.mean(gaps) > check.upper
     one_errors, one_covs, _, _ = _scan_splits(str(shared_data / "octomap"), symmetric=False)
     assert not check_consistency(nees(one_errors, one_covs), dof=6).passed
+
+
+def test_inplane_term_is_the_score_change_of_each_slab_shifted_along_itself():
+    """inplane_information: pitch^2 / 12 sum_p sum_b t_pb t_pb^T, t_pb the change of the score
+    sum sum_k w_k J_k^T r_k when the target points of slab p move along an in-plane lattice
+    axis b (finite differences at fixed matches and whitening: exact, r is linear in them)."""
+    source, target, T_gt = voxel_map_pair(3000)
+    reg = Registration(source, target, RegistrationConfig(max_correspondence_distance=0.3))
+    result = reg.run()
+    sol = reg.solution_terms(result.T, 0.3)
+    group, _ = plane_groups(sol.normals, sol.tgt, 3 * 0.03)
+    axis = np.argmax(np.abs(sol.normals), axis=1)
+
+    def score_sum(tgt):
+        terms = gicp_terms(result.T, sol.src, tgt, sol.whitening)
+        return np.einsum("k,kij,ki->j", sol.w, terms.jacobians, terms.residuals)
+
+    base, step, expected = score_sum(sol.tgt), 1e-4, np.zeros((6, 6))
+    for p in range(group.max() + 1):
+        for b in range(3):
+            moved = (group == p) & (axis != b)
+            if moved.any():
+                tgt = sol.tgt.copy()
+                tgt[moved, b] += step
+                t = (score_sum(tgt) - base) / step
+                expected += np.outer(t, t)
+    expected *= 0.03 ** 2 / 12.0
+    got = inplane_information(group, axis, sol.jacobians, sol.whitening, sol.w, 0.03)
+    np.testing.assert_allclose(got, expected, rtol=1e-6, atol=1e-9 * np.abs(expected).max())
+    # only the slabs parallel to the lattice hold a phase: the others add nothing
+    aligned = np.zeros(group.max() + 1, dtype=bool)
+    np.testing.assert_array_equal(
+        inplane_information(group, axis, sol.jacobians, sol.whitening, sol.w, 0.03, aligned),
+        np.zeros((6, 6)))
