@@ -2793,8 +2793,8 @@ def inplane_information(group: np.ndarray, axis: np.ndarray, jacobians: np.ndarr
 
     ``aligned`` (G,): the slabs parallel to the lattice (all: None). A plane tilted against
     it (:func:`tilted_groups`) is a staircase whose grid shifts along the plane from step to
-    step, so it holds no one phase (a dense voxel map of planes tilted 0.3 rad: mean NEES
-    6.07 without the term, 1.73 with it on every slab).
+    step, so it holds no one phase (a dense voxel map of planes tilted 0.3 rad, 30 trials:
+    mean NEES 5.39 without the term, 5.23 with it, 1.73 with it on every slab).
     """
     n_groups = int(group.max()) + 1
     # (M, 6, 3): the score's change per metre of target shift along each lattice axis
