@@ -263,10 +263,10 @@ class RegistrationConfig:
         whose phase along the plane the raw surface does not have. It matters along a
         direction few surfaces face (ICL-NUIM's office, 3 cm lattice map, 15k-point halves:
         errors 13-17 mm along the vertical with a reported 0.5-0.9 mm). Measured, 10 halves
-        each (seeds 10-19): mean NEES 453 -> 117 on the office (its floor's lost tilt is
-        still not covered: ``plane_tilt``), TUM 7.74 -> 4.99, the scan 7.53 -> 5.84, the
-        simulator's room views 7.04 -> 5.75 (docs/registration.md, "A lattice plane's
-        in-plane phase"). False = the normal offsets only (the earlier covariance)
+        each (seeds 10-19): mean NEES 453 -> 117 on the office (12.1 with ``plane_tilt``
+        1e-3 for its floor's lost tilt), TUM 7.74 -> 5.03, the scan 7.53 -> 6.66; the
+        simulator's room views 7.04 -> 5.75 (16 views) (docs/registration.md, "A lattice
+        plane's in-plane phase"). False = the normal offsets only (the earlier covariance)
     boundary_gate : tau, in units of the target's median distance to its k-th neighbour
         (:meth:`Registration.boundary_radius`). At the final correspondence distance each
         pair's weight is multiplied by ``exp(-(t / tau)^4 / 2)``, t the residual's component
