@@ -320,6 +320,24 @@ def shift_sensitivities(J: np.ndarray, Ut: np.ndarray, w: np.ndarray,
 
 
 @numba.njit(cache=True)
+def inplane_sums(J: np.ndarray, Ut: np.ndarray, w: np.ndarray, group: np.ndarray,
+                 axis: np.ndarray, n_groups: int) -> np.ndarray:
+    """Return (n_groups, 3, 6): per group p and lattice axis b, the sum over its pairs whose
+    ``axis`` is not b of ``w_k J_k^T U_k^T e_b`` (``inplane_information``; the (M, 6, 3)
+    shift sensitivities, gathered per axis and group, took 150 ms at 460k pairs)."""
+    out = np.zeros((n_groups, 3, 6))
+    for k in range(J.shape[0]):
+        g = group[k]
+        for b in range(3):
+            if axis[k] == b:
+                continue
+            for i in range(6):
+                out[g, b, i] += w[k] * (J[k, 0, i] * Ut[k, 0, b] + J[k, 1, i] * Ut[k, 1, b]
+                                        + J[k, 2, i] * Ut[k, 2, b])
+    return out
+
+
+@numba.njit(cache=True)
 def grouped_sums(keys: np.ndarray, lo: np.ndarray, span: np.ndarray,
                  values: np.ndarray) -> np.ndarray:
     """Return ``values`` (M, d) summed over the rows of equal (M, 3) int64 ``keys`` (each

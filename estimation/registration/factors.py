@@ -126,6 +126,15 @@ def shift_sensitivities(jacobians: np.ndarray, Ut: np.ndarray, w: np.ndarray,
     return _kernels.shift_sensitivities(_f8(jacobians), _f8(Ut), _f8(w), _f8(weight))
 
 
+def inplane_sums(jacobians: np.ndarray, Ut: np.ndarray, w: np.ndarray, group: np.ndarray,
+                 axis: np.ndarray) -> np.ndarray:
+    """Return (G, 3, 6): per group (``group``, G = its largest index + 1) and lattice axis b,
+    ``w_k J_k^T U_k^T e_b`` summed over its pairs whose dominant ``axis`` is not b, in one
+    pass."""
+    return _kernels.inplane_sums(_f8(jacobians), _f8(Ut), _f8(w), _rows(group), _rows(axis),
+                                 int(group.max()) + 1)
+
+
 def grouped_sums(keys: np.ndarray, lo: np.ndarray, span: np.ndarray,
                  values: np.ndarray) -> np.ndarray:
     """Return ``values`` (M, d) summed over the rows of equal (M, 3) int64 ``keys`` within
