@@ -240,19 +240,25 @@ def test_a_split_whitening_equals_the_whole(monkeypatch):
         busy.result()
 
 
-def test_the_second_thread_prefetches_before_it_searches_the_maps_grid(monkeypatch):
-    """The first iteration's source rows are prefetched before the map's grid is searched
-    (needed only at convergence), once per run, and never for the reverse direction."""
-    source, _, target, _, T_gt = make_pair(17, 1500, 0.01)
+def submitted_to_the_second_thread(monkeypatch) -> list[str]:
+    """Return the list into which every later submission to the second thread appends its
+    function's name (a :class:`gicp._Beside` task: the function it runs)."""
     executor = gicp._reverse_executor()
     submitted, plain = [], executor.submit
 
     def submit(fn, *args, **kwargs):
-        name = getattr(args[0] if fn is gicp._beside else fn, "__name__", "")
-        submitted.append(name)
+        submitted.append(getattr(args[0] if fn is gicp._beside else fn, "__name__", ""))
         return plain(fn, *args, **kwargs)
 
     monkeypatch.setattr(executor, "submit", submit)
+    return submitted
+
+
+def test_the_second_thread_prefetches_before_it_searches_the_maps_grid(monkeypatch):
+    """The first iteration's source rows are prefetched before the map's grid is searched
+    (needed only at convergence), once per run, and never for the reverse direction."""
+    source, _, target, _, T_gt = make_pair(17, 1500, 0.01)
+    submitted = submitted_to_the_second_thread(monkeypatch)
     result = Registration(source, target, RegistrationConfig()).run(T_gt)
     assert result.converged
     assert submitted.count("_partial_cells_grid") == 1
@@ -272,15 +278,8 @@ def test_the_class_trees_are_built_on_the_second_thread_after_the_sources_tree(m
             built.append(threading.current_thread() is threading.main_thread())
         return plain(*args, **kwargs)
 
-    executor = gicp._reverse_executor()
-    submitted, submit = [], executor.submit
-
-    def record(fn, *args, **kwargs):
-        submitted.append(getattr(fn, "__qualname__", "").rpartition(".")[2])
-        return submit(fn, *args, **kwargs)
-
     monkeypatch.setattr(gicp, "SemanticIndex", spy)
-    monkeypatch.setattr(executor, "submit", record)
+    submitted = submitted_to_the_second_thread(monkeypatch)
     config = RegistrationConfig(max_correspondence_distance=0.2,
                                 initial_correspondence_distance=0.8, decay=0.5)
     beside = Registration(source, target, config, probs_s, probs_t).run(T_gt)
