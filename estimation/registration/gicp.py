@@ -25,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr  # (loaded with scipy.spatial already)
 
+from ..blas import blas_threads
 from ..config import coerce_fields
 from ..errors import EstimationError
 from ..heap import keep_freed_memory
@@ -34,6 +35,7 @@ from .correspondences import (
     NeighbourCache,
     SemanticIndex,
     VoxelGrid,
+    _cores,
     _workers,
     grid_cells,
     grid_sample,
@@ -1778,11 +1780,16 @@ class Registration:
 
         The first call in a process raises glibc's malloc thresholds
         (:func:`estimation.heap.keep_freed_memory`; ``OCTOFACTOR_KEEP_HEAP=0``: not), so that
-        the iterations' large arrays reuse memory instead of being faulted in again."""
+        the iterations' large arrays reuse memory instead of being faulted in again.
+
+        While it runs, BLAS uses half the cores (one on two; :func:`estimation.blas.blas_threads`,
+        ``OCTOFACTOR_BLAS_THREADS=keep``: not): OpenBLAS's idle workers spin and took the
+        second thread's core."""
         keep_freed_memory()
         # the second thread works beside this one throughout (preparations, the reverse):
-        # this thread's queries leave it its core (:func:`.correspondences.queries_beside`)
-        with queries_beside():
+        # this thread's queries leave it its core (:func:`.correspondences.queries_beside`),
+        # and so do BLAS's workers
+        with queries_beside(), blas_threads(max(_cores() // 2, 1)):
             result = self._run(init)
             cfg = self.config
             if (not self.semantic or not cfg.semantic_rescue or _trusted(result)

@@ -1,0 +1,41 @@
+"""Fewer BLAS threads while a registration runs: OpenBLAS's idle workers spin.
+
+numpy and scipy bring OpenBLAS. It runs a large enough matrix product on every core and then
+keeps its worker threads spinning, in case another product comes soon. A registration already
+keeps two cores busy: its own thread and its second thread
+(``estimation.registration.gicp._reverse_executor``). Its BLAS products are small, and the
+spinning workers took the second thread's core. They went on spinning after the
+registration returned, so whatever ran next was slowed too.
+
+Measured on the scan's 15k-point halves, two cores, 20 starts (/work/exp35/order.py):
+- after a registration, the process burnt 35-80 ms of CPU in a 100 ms sleep (0.1 ms after
+  Open3D GICP);
+- GICP-SE(3) took 167 ms after an Open3D run and 192-195 ms after one of ours; Semantic-ICP
+  197 and 225-229 ms; Open3D itself 199 and 220-231 ms;
+- with one BLAS thread (``OPENBLAS_NUM_THREADS=1``): GICP-SE(3) 154-157 ms, Semantic-ICP
+  183-188 ms, Open3D 199-204 ms, whatever ran before.
+
+:func:`blas_threads` limits every BLAS library loaded in the process (threadpoolctl) for a
+``with`` block and restores the earlier limits after it. It changes a process-wide setting,
+so it is opt-out: ``OCTOFACTOR_BLAS_THREADS=keep`` in the environment leaves BLAS alone.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+
+_CONTROLLER = None  # threadpoolctl's view of the loaded libraries (made at the first use)
+
+
+def blas_threads(threads: int) -> contextlib.AbstractContextManager:
+    """A context in which the process's BLAS libraries use at most ``threads`` threads.
+
+    Does nothing where ``OCTOFACTOR_BLAS_THREADS=keep`` is set."""
+    if os.environ.get("OCTOFACTOR_BLAS_THREADS") == "keep":
+        return contextlib.nullcontext()
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER.limit(limits=max(int(threads), 1), user_api="blas")

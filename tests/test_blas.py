@@ -1,0 +1,68 @@
+"""BLAS's threads while a registration runs: half the cores, the earlier limits after.
+
+OpenBLAS's idle workers spin after a product and took the registration's second core, and
+they went on spinning after it returned (estimation/blas.py). Timing is a benchmark's business
+(benchmarks/registration_indoor.py); these tests check that the limit is in place, where,
+and that it is undone."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from test_registration import make_pair
+from threadpoolctl import threadpool_info
+
+from estimation.blas import blas_threads
+from estimation.registration import Registration, RegistrationConfig, gicp
+
+
+def _blas_threads() -> list[int]:
+    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+
+def _threads_inside_run(monkeypatch) -> tuple[list[int], list[int], list[int]]:
+    """(BLAS threads before, inside _run, after) of one registration."""
+    seen = []
+    inner = Registration._run
+
+    def spy(self, init):
+        seen.append(_blas_threads())
+        return inner(self, init)
+
+    monkeypatch.setattr(Registration, "_run", spy)
+    source, _, target, _, T_gt = make_pair(3, n=800)
+    before = _blas_threads()
+    result = Registration(source, target, RegistrationConfig()).run(T_gt)
+    assert result.converged
+    return before, seen[0], _blas_threads()
+
+
+def test_a_registration_runs_with_half_the_cores_for_blas_and_restores_them(monkeypatch):
+    monkeypatch.delenv("OCTOFACTOR_BLAS_THREADS", raising=False)
+    before, inside, after = _threads_inside_run(monkeypatch)
+    assert before, "no BLAS library found: numpy brings one"
+    half = max(gicp._cores() // 2, 1)
+    assert all(n <= half for n in inside)
+    assert after == before  # the user's limits back
+
+
+def test_keep_leaves_blas_alone(monkeypatch):
+    monkeypatch.setenv("OCTOFACTOR_BLAS_THREADS", "keep")
+    before, inside, after = _threads_inside_run(monkeypatch)
+    assert inside == before == after
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: BLAS has one thread anyway")
+def test_the_limit_lowers_the_threads_and_nests(monkeypatch):
+    monkeypatch.delenv("OCTOFACTOR_BLAS_THREADS", raising=False)
+    with blas_threads(2):
+        outer = _blas_threads()
+        with blas_threads(1):
+            assert all(n == 1 for n in _blas_threads())
+            # (a product still runs, on one thread)
+            a = np.ones((300, 300))
+            assert float((a @ a)[0, 0]) == 300.0
+        assert _blas_threads() == outer
+    with blas_threads(0):  # (at least one)
+        assert all(n == 1 for n in _blas_threads())
