@@ -87,13 +87,13 @@ def test_the_coarse_stage_matches_the_normal_space_rows(monkeypatch):
 STARTS = (13, 19, 22, 28)
 
 
-def icl_half_room_starts(centroid_room, seeds, n: int = SOURCE_POINTS):
+def icl_half_room_starts(centroid_room, seeds, n: int = SOURCE_POINTS, offset: str = "small"):
     """Yield (source, map, initial guess, T_target_source, stages) of the indoor benchmark's
     cell on the ICL-NUIM office (every 5th frame): a half of ``n`` points (0: every point, a
     raw half) with 5 mm noise and 10 % wrong labels against the room's 3 cm centroid map, from
-    the small offset, one trial per seed."""
+    the benchmark's ``offset`` ("small" or "wide"), one trial per seed."""
     points, labels, target = centroid_room("icl", 5)
-    metres, degrees, d0 = OFFSETS["small"]
+    metres, degrees, d0 = OFFSETS[offset]
     for seed in seeds:
         rng = np.random.default_rng(seed)
         source, T_gt = half_room_source(points, labels, rng, n)

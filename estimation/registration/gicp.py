@@ -157,7 +157,8 @@ class RegistrationConfig:
         (``CovarianceDiagnostic.trusted`` False) runs again from the same start with the
         annealing stages matched geometrically (nearest neighbours, as GICP-SE(3); the
         classes only at the final d_max), and that result is returned where it is trusted
-        (``RegistrationResult.rescued``). The class-restricted objective has minima of its
+        (``RegistrationResult.rescued``; its final stage runs at most
+        ``RESCUE_FINAL_ITERATIONS``). The class-restricted objective has minima of its
         own at a wide d_max: the real office's 15k-point halves, 20 starts, ended 0.16-0.27 m
         off in 2 of 20 small and 11 of 20 wide ones (all flagged untrusted), 0 and 8 with
         the rescue (GICP-SE(3) 0 and 10); docs/registration.md, "A second start for an
@@ -894,6 +895,13 @@ CACHE_STEP = 1e-1
 # narrow one again (False: not; 3 of 20 dense starts on a real office then ran out of
 # iterations 2-5 cm off)
 WIDE_FINAL_STAGE = True
+# Semantic-ICP's second start (RegistrationConfig.semantic_rescue) runs at most this many
+# final-stage iterations (None: max_iterations). It replaces the first result only where it is
+# trusted, and a result that has not converged is not. On the real office's 15k-point halves
+# the rescued starts converged within 15 final iterations (5 of 40 starts, small and wide
+# offsets), and the second starts that ran longer all ended untrusted, 5 of them after all
+# 150 (0.95-1.5 m off; docs/registration.md, "The second start's final stage")
+RESCUE_FINAL_ITERATIONS = 60
 # a start at the final d_max (no annealing: RegistrationConfig's defaults, the CLI without
 # --initial-corr) of a source with a coarse subset (coarse_points) first aligns that subset
 # at the final d_max, as an annealing stage would, then every point (the same fixed point:
@@ -1847,6 +1855,9 @@ class Registration:
             annealing_budget = stages * (cfg.stage_iterations if cfg.anneal == "convergence"
                                          else 1)
         final_iterations = 0
+        max_final = cfg.max_iterations  # (a second start's: RESCUE_FINAL_ITERATIONS)
+        if self._geometric_annealing and RESCUE_FINAL_ITERATIONS is not None:
+            max_final = min(max_final, RESCUE_FINAL_ITERATIONS)
         # an annealed registration whose final stage (residual-based kernel) has not converged
         # after stage_iterations is crawling: the wide kernel (cauchy_alpha) until it
         # converges, then the narrow one again
@@ -1865,7 +1876,7 @@ class Registration:
         for iterations in range(1, cfg.max_iterations + annealing_budget + 1):
             annealing = coarse_first or d > d_final * (1 + 1e-9)
             if not annealing:
-                if final_iterations >= cfg.max_iterations:
+                if final_iterations >= max_final:
                     iterations -= 1
                     break
                 final_iterations += 1
