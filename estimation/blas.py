@@ -16,26 +16,48 @@ Measured on the scan's 15k-point halves, two cores, 20 starts (/work/exp35/order
   183-188 ms, Open3D 199-204 ms, whatever ran before.
 
 :func:`blas_threads` limits every BLAS library loaded in the process (threadpoolctl) for a
-``with`` block and restores the earlier limits after it. It changes a process-wide setting,
-so it is opt-out: ``OCTOFACTOR_BLAS_THREADS=keep`` in the environment leaves BLAS alone.
+``with`` block and restores the earlier limits after it (after the last of several threads'
+blocks). It changes a process-wide setting, so it is opt-out: ``OCTOFACTOR_BLAS_THREADS=keep``
+in the environment leaves BLAS alone.
 """
 from __future__ import annotations
 
 import contextlib
 import os
+import threading
+from collections.abc import Iterator
 
 _CONTROLLER = None  # threadpoolctl's view of the loaded libraries (made at the first use)
+_LOCK = threading.Lock()
+_HOLDERS = 0  # contexts inside blas_threads now (registrations in several threads)
+_LIMITER = None  # the limit they hold: restored when the last one leaves
 
 
-def blas_threads(threads: int) -> contextlib.AbstractContextManager:
-    """A context in which the process's BLAS libraries use at most ``threads`` threads.
+@contextlib.contextmanager
+def blas_threads(threads: int) -> Iterator[None]:
+    """A context in which the process's BLAS libraries use at most ``threads`` threads (one at
+    least), and after which they have their earlier limits again.
 
-    Does nothing where ``OCTOFACTOR_BLAS_THREADS=keep`` is set."""
+    The limit is process-wide, so contexts entered in several threads share one: the first
+    sets it, the last one to leave restores the earlier limits, in whatever order they
+    leave. Does nothing where ``OCTOFACTOR_BLAS_THREADS=keep`` is set."""
     if os.environ.get("OCTOFACTOR_BLAS_THREADS") == "keep":
-        return contextlib.nullcontext()
-    global _CONTROLLER
-    if _CONTROLLER is None:
-        from threadpoolctl import ThreadpoolController
+        yield
+        return
+    global _CONTROLLER, _HOLDERS, _LIMITER
+    with _LOCK:
+        if _HOLDERS == 0:
+            if _CONTROLLER is None:
+                from threadpoolctl import ThreadpoolController
 
-        _CONTROLLER = ThreadpoolController()
-    return _CONTROLLER.limit(limits=max(int(threads), 1), user_api="blas")
+                _CONTROLLER = ThreadpoolController()
+            _LIMITER = _CONTROLLER.limit(limits=max(int(threads), 1), user_api="blas")
+        _HOLDERS += 1
+    try:
+        yield
+    finally:
+        with _LOCK:
+            _HOLDERS -= 1
+            if _HOLDERS == 0:
+                _LIMITER.restore_original_limits()
+                _LIMITER = None

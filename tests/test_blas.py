@@ -7,6 +7,7 @@ and that it is undone."""
 from __future__ import annotations
 
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -54,15 +55,28 @@ def test_keep_leaves_blas_alone(monkeypatch):
 
 
 @pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one core: BLAS has one thread anyway")
-def test_the_limit_lowers_the_threads_and_nests(monkeypatch):
+def test_the_limit_holds_until_the_last_context_leaves_in_any_order(monkeypatch):
     monkeypatch.delenv("OCTOFACTOR_BLAS_THREADS", raising=False)
-    with blas_threads(2):
-        outer = _blas_threads()
-        with blas_threads(1):
-            assert all(n == 1 for n in _blas_threads())
-            # (a product still runs, on one thread)
-            a = np.ones((300, 300))
-            assert float((a @ a)[0, 0]) == 300.0
-        assert _blas_threads() == outer
-    with blas_threads(0):  # (at least one)
-        assert all(n == 1 for n in _blas_threads())
+    earlier = _blas_threads()
+    first, second = blas_threads(0), blas_threads(1)  # (0: at least one)
+    first.__enter__()
+    assert all(n == 1 for n in _blas_threads())
+    a = np.ones((300, 300))
+    assert float((a @ a)[0, 0]) == 300.0  # (a product still runs, on one thread)
+    second.__enter__()
+    # two registrations in two threads: the first to start leaves first
+    first.__exit__(None, None, None)
+    assert all(n == 1 for n in _blas_threads())  # the other still runs
+    second.__exit__(None, None, None)
+    assert _blas_threads() == earlier
+
+
+def test_registrations_in_two_threads_leave_the_limits_as_they_were(monkeypatch):
+    monkeypatch.delenv("OCTOFACTOR_BLAS_THREADS", raising=False)
+    earlier = _blas_threads()
+    pairs = [make_pair(seed, n=800) for seed in (4, 5)]
+    with ThreadPoolExecutor(2) as pool:
+        results = list(pool.map(
+            lambda p: Registration(p[0], p[2], RegistrationConfig()).run(p[4]), pairs))
+    assert all(r.converged for r in results)
+    assert _blas_threads() == earlier
