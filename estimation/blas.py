@@ -33,6 +33,18 @@ _HOLDERS = 0  # contexts inside blas_threads now (registrations in several threa
 _LIMITER = None  # the limit they hold: restored when the last one leaves
 
 
+def find_libraries():
+    """threadpoolctl's controller of the BLAS libraries loaded in the process, made at the
+    first call (threadpoolctl's import and its scan of the loaded libraries: about 6.5 ms);
+    :func:`blas_threads` limits those. Libraries loaded after the first call are not limited."""
+    global _CONTROLLER
+    if _CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _CONTROLLER = ThreadpoolController()
+    return _CONTROLLER
+
+
 @contextlib.contextmanager
 def blas_threads(threads: int) -> Iterator[None]:
     """A context in which the process's BLAS libraries use at most ``threads`` threads (one at
@@ -44,14 +56,10 @@ def blas_threads(threads: int) -> Iterator[None]:
     if os.environ.get("OCTOFACTOR_BLAS_THREADS") == "keep":
         yield
         return
-    global _CONTROLLER, _HOLDERS, _LIMITER
+    global _HOLDERS, _LIMITER
     with _LOCK:
         if _HOLDERS == 0:
-            if _CONTROLLER is None:
-                from threadpoolctl import ThreadpoolController
-
-                _CONTROLLER = ThreadpoolController()
-            _LIMITER = _CONTROLLER.limit(limits=max(int(threads), 1), user_api="blas")
+            _LIMITER = find_libraries().limit(limits=max(int(threads), 1), user_api="blas")
         _HOLDERS += 1
     try:
         yield

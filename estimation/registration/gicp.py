@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import functools
 import math
+import os
 import threading
 import time
 from concurrent.futures import Future
@@ -25,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr  # (loaded with scipy.spatial already)
 
-from ..blas import blas_threads
+from ..blas import blas_threads, find_libraries
 from ..config import coerce_fields
 from ..errors import EstimationError
 from ..heap import keep_freed_memory
@@ -71,6 +72,11 @@ from .factors import (
     whitening_rows,
     whitening_rows_into,
 )
+
+# the BLAS libraries run() limits (numpy's and scipy's, loaded by now), found at import: the
+# 6.5 ms a process's first registration would otherwise pay (estimation/blas.py)
+if os.environ.get("OCTOFACTOR_BLAS_THREADS") != "keep":
+    find_libraries()
 
 # Cauchy tuning constant for 95 % asymptotic efficiency at Gaussian residuals (Holland and
 # Welsch 1977), in units of the residuals' standard deviation
