@@ -14,12 +14,23 @@ import pytest
 from test_registration import make_pair
 from threadpoolctl import threadpool_info
 
-from estimation.blas import blas_threads
+from estimation.blas import blas_threads, find_libraries
 from estimation.registration import Registration, RegistrationConfig, gicp
 
 
 def _blas_threads() -> list[int]:
-    return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    """The threads of the BLAS libraries a registration limits: those loaded when the
+    registration module was imported, numpy's and scipy's among them. (OpenCV or Open3D may
+    bring another OpenBLAS later, which a registration does not call.)"""
+    return [lib["num_threads"] for lib in find_libraries().info() if lib["user_api"] == "blas"]
+
+
+def test_the_limited_libraries_are_numpys_and_scipys():
+    import scipy.linalg  # noqa: F401  (scipy's BLAS, loaded)
+
+    theirs = {lib["filepath"] for lib in threadpool_info() if lib["user_api"] == "blas"
+              and any(name in lib["filepath"] for name in ("numpy", "scipy"))}
+    assert theirs <= {lib["filepath"] for lib in find_libraries().info()}
 
 
 def _threads_inside_run(monkeypatch) -> tuple[list[int], list[int], list[int]]:
