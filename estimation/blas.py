@@ -33,6 +33,17 @@ _HOLDERS = 0  # contexts inside blas_threads now (registrations in several threa
 _LIMITER = None  # the limit they hold: restored when the last one leaves
 
 
+def _left_alone() -> bool:
+    return os.environ.get("OCTOFACTOR_BLAS_THREADS") == "keep"
+
+
+def find_libraries_now() -> None:
+    """Find the libraries (:func:`find_libraries`) now, unless BLAS is left alone: at the
+    import of a module whose calls limit them, so that its first call does not pay for it."""
+    if not _left_alone():
+        find_libraries()
+
+
 def find_libraries():
     """threadpoolctl's controller of the BLAS libraries loaded in the process, made at the
     first call (threadpoolctl's import and its scan of the loaded libraries: about 6.5 ms);
@@ -53,7 +64,7 @@ def blas_threads(threads: int) -> Iterator[None]:
     The limit is process-wide, so contexts entered in several threads share one: the first
     sets it, the last one to leave restores the earlier limits, in whatever order they
     leave. Does nothing where ``OCTOFACTOR_BLAS_THREADS=keep`` is set."""
-    if os.environ.get("OCTOFACTOR_BLAS_THREADS") == "keep":
+    if _left_alone():
         yield
         return
     global _HOLDERS, _LIMITER

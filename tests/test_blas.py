@@ -54,7 +54,7 @@ def test_a_registration_runs_with_half_the_cores_for_blas_and_restores_them(monk
     monkeypatch.delenv("OCTOFACTOR_BLAS_THREADS", raising=False)
     before, inside, after = _threads_inside_run(monkeypatch)
     assert before, "no BLAS library found: numpy brings one"
-    half = max(gicp._cores() // 2, 1)
+    half = gicp.threads_beside()
     assert all(n <= half for n in inside)
     assert after == before  # the user's limits back
 

@@ -44,6 +44,12 @@ def _cores() -> int:
         return max(os.cpu_count() or 1, 1)
 
 
+def threads_beside() -> int:
+    """The threads each of a registration's two threads may use: half the cores (one on
+    two; its KD-tree queries, :func:`queries_beside`, and BLAS, ``Registration.run``)."""
+    return max(_cores() // 2, 1)
+
+
 def _workers(n: int, k: int = 1) -> int:
     """Threads for a KD-tree query of n points, k neighbours: starting threads costs more
     than small queries gain; half the cores (one on two) inside :func:`queries_beside`."""
@@ -60,7 +66,7 @@ def queries_beside():
     beside the other thread's work was slower than on one; one each took KITTI at
     0.1-0.25 m 7-8 % less time a registration and the rooms 1.5-5 %."""
     previous = getattr(_QUERY_THREADS, "workers", None)
-    _QUERY_THREADS.workers = max(_cores() // 2, 1)
+    _QUERY_THREADS.workers = threads_beside()
     try:
         yield
     finally:

@@ -15,7 +15,6 @@ from __future__ import annotations
 import copy
 import functools
 import math
-import os
 import threading
 import time
 from concurrent.futures import Future
@@ -26,7 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.special import ndtr  # (loaded with scipy.spatial already)
 
-from ..blas import blas_threads, find_libraries
+from ..blas import blas_threads, find_libraries_now
 from ..config import coerce_fields
 from ..errors import EstimationError
 from ..heap import keep_freed_memory
@@ -36,7 +35,6 @@ from .correspondences import (
     NeighbourCache,
     SemanticIndex,
     VoxelGrid,
-    _cores,
     _workers,
     grid_cells,
     grid_sample,
@@ -49,6 +47,7 @@ from .correspondences import (
     queries_beside,
     semantic_correspondences,
     sheets_possible,
+    threads_beside,
     top_class_order,
     transform_points,
     voxel_grid,
@@ -75,8 +74,7 @@ from .factors import (
 
 # the BLAS libraries run() limits (numpy's and scipy's, loaded by now), found at import: the
 # 6.5 ms a process's first registration would otherwise pay (estimation/blas.py)
-if os.environ.get("OCTOFACTOR_BLAS_THREADS") != "keep":
-    find_libraries()
+find_libraries_now()
 
 # Cauchy tuning constant for 95 % asymptotic efficiency at Gaussian residuals (Holland and
 # Welsch 1977), in units of the residuals' standard deviation
@@ -1803,7 +1801,7 @@ class Registration:
         # the second thread works beside this one throughout (preparations, the reverse):
         # this thread's queries leave it its core (:func:`.correspondences.queries_beside`),
         # and so do BLAS's workers
-        with queries_beside(), blas_threads(max(_cores() // 2, 1)):
+        with queries_beside(), blas_threads(threads_beside()):
             result = self._run(init)
             cfg = self.config
             if (not self.semantic or not cfg.semantic_rescue or _trusted(result)
