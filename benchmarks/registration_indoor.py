@@ -31,7 +31,9 @@ source (per trial, seeded)
     The room's points on one side of a random vertical plane through its centroid, 15000 of
     them drawn at random (``--source-points``; 0: all of them, a raw half-room cloud), 5 mm
     Gaussian noise added (``--noise``; 0: the map's points as they are), 10 % of the labels
-    changed to another class at random, moved into their own frame by a random rigid
+    changed to another class at random (each point on its own; ``--wrong-blocks M``: whole
+    M-metre blocks of the half, 10 % of them, each to one other class, as a segmentation
+    network errs on whole objects and regions), moved into their own frame by a random rigid
     transform (5-30 deg, about 1.7 m): the exact ground truth ``T_target_source``.
 setting
     ``half`` (default, the held-out check's case): that half against the map of the whole
@@ -100,6 +102,8 @@ Usage::
     python benchmarks/registration_indoor.py --rooms icl --maps centroids --source-points 0 \
         --methods gicp-se3,semantic-icp,open3d-gicp --trials 20 --first-trial 6 --map-phases 3
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centres --plane-tilt 0.001
+    python benchmarks/registration_indoor.py --rooms scan,tum,icl --maps centroids --classes 24 \
+        --wrong-blocks 0.3 --methods gicp-se3,semantic-icp,open3d-gicp --trials 10
     python benchmarks/registration_indoor.py --rooms scan --maps centroids --map-error none
     python benchmarks/registration_indoor.py --rooms scan --maps centres --lattice-noise none
     python benchmarks/registration_indoor.py --rooms tum,icl --maps centroids --methods \
@@ -239,23 +243,41 @@ def voxel_map(points: np.ndarray, labels: np.ndarray, kind: str, pitch: float = 
 
 
 def half_room_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
-                     n: int = SOURCE_POINTS, noise: float = SOURCE_NOISE, wrong: float = 0.1
-                     ) -> tuple[SemanticCloud, np.ndarray]:
+                     n: int = SOURCE_POINTS, noise: float = SOURCE_NOISE, wrong: float = 0.1,
+                     wrong_blocks: float | None = None) -> tuple[SemanticCloud, np.ndarray]:
     """Return (source cloud in its own frame, T_target_source) of one trial."""
-    source, T, _ = room_part_source(points, labels, rng, 0.0, n, noise, wrong)
+    source, T, _ = room_part_source(points, labels, rng, 0.0, n, noise, wrong, wrong_blocks)
     return source, T
+
+
+def block_flips(points: np.ndarray, share: float, block: float, rng: np.random.Generator
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Return (flipped (N,) bool, class shift of each flipped point in 1 .. N_CLASSES - 1):
+    the points' ``block``-metre cubes (a grid with a random phase), each flipped with
+    probability ``share``, every point of a flipped cube shifted by the cube's one shift."""
+    cube = np.floor((points + rng.uniform(0.0, block, 3)) / block).astype(np.int64)
+    _, inverse = np.unique(cube, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    flipped = rng.random(int(inverse.max()) + 1) < share
+    shift = rng.integers(1, N_CLASSES, size=len(flipped))
+    flip = flipped[inverse]
+    return flip, shift[inverse][flip]
 
 
 def room_part_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Generator,
                      overlap: float = PART_OVERLAP, n: int = SOURCE_POINTS,
-                     noise: float = SOURCE_NOISE,
-                     wrong: float = 0.1) -> tuple[SemanticCloud, np.ndarray, np.ndarray]:
+                     noise: float = SOURCE_NOISE, wrong: float = 0.1,
+                     wrong_blocks: float | None = None
+                     ) -> tuple[SemanticCloud, np.ndarray, np.ndarray]:
     """Return (source cloud in its own frame, T_target_source, rows of the target's part).
 
     The source is drawn from the room's points with ``s > -overlap / 2``, s their distance
     along a random horizontal direction from the room's centroid; the target's part is the
     rows with ``s < overlap / 2`` (with ``overlap`` 0: the source is one half, and the
-    target's rows are the other half, unused by the "half" setting).
+    target's rows are the other half, unused by the "half" setting). A share ``wrong`` of
+    the labels is changed to another class: each point on its own, or with ``wrong_blocks``
+    (m) whole blocks (:func:`block_flips`, from a stream of its own: the points, the
+    truth and the start are those of the per-point draw).
     """
     angle = rng.uniform(0.0, 2.0 * np.pi)
     s = (points - points.mean(axis=0)) @ [np.cos(angle), np.sin(angle), 0]
@@ -264,8 +286,10 @@ def room_part_source(points: np.ndarray, labels: np.ndarray, rng: np.random.Gene
     source = points[rows] + rng.normal(scale=noise, size=(len(rows), 3))
     source_labels = labels[rows].copy()
     flip = rng.random(len(rows)) < wrong
-    source_labels[flip] = (source_labels[flip]
-                           + rng.integers(1, N_CLASSES, size=int(flip.sum()))) % N_CLASSES
+    shift = rng.integers(1, N_CLASSES, size=int(flip.sum()))
+    if wrong_blocks is not None:
+        flip, shift = block_flips(points[rows], wrong, wrong_blocks, rng.spawn(1)[0])
+    source_labels[flip] = (source_labels[flip] + shift) % N_CLASSES
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     T = gtsam.Pose3(gtsam.Rot3.Rodrigues(axis * np.deg2rad(rng.uniform(5.0, 30.0))),
@@ -327,7 +351,8 @@ def half_room_trials(points: np.ndarray, labels: np.ndarray, target: SemanticClo
 def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="half",
              phases=0, source_points=SOURCE_POINTS, ours: dict | None = None,
              map_phase: str = "fixed", source_cloud: tuple | None = None,
-             noise: float = SOURCE_NOISE, map_index: int = 0) -> dict:
+             noise: float = SOURCE_NOISE, map_index: int = 0,
+             wrong_blocks: float | None = None) -> dict:
     """Return every trial's numbers of one (room, map kind, offset, setting) cell.
 
     ``ours``: further RegistrationConfig fields for every method of ours. ``map_phase``
@@ -345,6 +370,8 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
 
     ``map_index`` ("half", one map for every trial): the map's grid phase (:func:`map_shift`;
     0: the default grid).
+
+    ``wrong_blocks`` (m): the sources' wrong labels in whole blocks (:func:`block_flips`).
     """
     # one map for every trial, or (a part's map, a random phase) one per trial below
     target = (labelled(*voxel_map(points, labels, kind, shift=map_shift(map_index)))
@@ -358,11 +385,12 @@ def run_cell(points, labels, kind, offset, trials, methods, seed0=0, setting="ha
         shift = phase_shift(trial) if map_phase == "random" else None
         if setting == "part":
             source, T_gt, part = room_part_source(points, labels, rng, n=source_points,
-                                                  noise=noise)
+                                                  noise=noise, wrong_blocks=wrong_blocks)
             target = labelled(*voxel_map(points[part], labels[part], kind, shift=shift))
         else:
             cloud = (points, labels) if source_cloud is None else source_cloud
-            source, T_gt = half_room_source(*cloud, rng, source_points, noise)
+            source, T_gt = half_room_source(*cloud, rng, source_points, noise,
+                                            wrong_blocks=wrong_blocks)
             if shift is not None:
                 target = labelled(*voxel_map(points, labels, kind, shift=shift))
         sizes.append(len(target.points))
@@ -626,6 +654,10 @@ def main(argv=None) -> int:
                         f"the map's own points (default {SOURCE_NOISE:g}; 0: none; not with "
                         "--source-frames other, whose halves carry their own sensor noise "
                         "only)")
+    parser.add_argument("--wrong-blocks", type=float, default=None, metavar="M",
+                        help="change the sources' 10 %% wrong labels in whole M-metre blocks "
+                        "(each block to one other class: a segmentation's errors come in "
+                        "regions) instead of point by point")
     parser.add_argument("--systematic-sigma", default=None, metavar="S|SX,SY,SZ",
                         help="RegistrationConfig.systematic_sigma for ours (m): an offset "
                         "common to the whole source that the data cannot show (an "
@@ -664,6 +696,9 @@ def main(argv=None) -> int:
         args.noise = 0.0 if args.source_frames == "other" else SOURCE_NOISE
     if not (np.isfinite(args.noise) and args.noise >= 0.0):
         parser.error(f"--noise must be a finite number >= 0, got {args.noise}")
+    if args.wrong_blocks is not None and not (np.isfinite(args.wrong_blocks)
+                                              and args.wrong_blocks > 0.0):
+        parser.error(f"--wrong-blocks must be a finite number > 0, got {args.wrong_blocks}")
     start, stop = 0, None
     if args.frames is not None:
         try:
@@ -707,7 +742,9 @@ def main(argv=None) -> int:
                 source_cloud = (source_cloud[0], object_labels(*source_cloud, N_CLASSES))
         print(f"{name} room: {len(points)} points, classes {np.bincount(labels).tolist()}"
               + (f"; halves from the other frames' {len(source_cloud[0])} points"
-                 if other else f"; sources with {args.noise * 1e3:g} mm of noise"))
+                 if other else f"; sources with {args.noise * 1e3:g} mm of noise")
+              + ("" if args.wrong_blocks is None
+                 else f"; wrong labels in {args.wrong_blocks:g} m blocks"))
         # compile/load the numba kernels outside the timings
         warm = labelled(points[::50], labels[::50])
         register_ours(warm, warm, np.eye(4), (D_FINAL,))
@@ -718,7 +755,8 @@ def main(argv=None) -> int:
                                   phases=args.phase_covariance,
                                   source_points=args.source_points, ours=ours,
                                   map_phase=args.map_phase, source_cloud=source_cloud,
-                                  noise=args.noise, map_index=index)
+                                  noise=args.noise, map_index=index,
+                                  wrong_blocks=args.wrong_blocks)
                          for index in range(args.map_phases)]
                 for index, cell in enumerate(cells):
                     if len(cells) > 1:

@@ -281,6 +281,49 @@ def test_noise_zero_gives_the_maps_own_points():
     assert 0.004 < (back(noisy) - back(exact)).std() < 0.006
 
 
+def test_wrong_blocks_relabel_whole_blocks_of_the_same_half():
+    """``--wrong-blocks``: the same points, truth and start as the per-point draw; about a
+    tenth of the labels wrong, but whole blocks of them, each block shifted to one other
+    class (a segmentation's errors come in regions)."""
+    from benchmarks.registration_indoor import N_CLASSES, block_flips, main
+
+    rng = np.random.default_rng(0)
+    points = rng.uniform(-3.0, 3.0, (20000, 3))
+    labels = rng.integers(0, N_CLASSES, len(points))
+    each, T = half_room_source(points, labels, np.random.default_rng(1), 0)
+    blocks, T_b = half_room_source(points, labels, np.random.default_rng(1), 0,
+                                   wrong_blocks=0.5)
+    np.testing.assert_array_equal(blocks.points, each.points)
+    np.testing.assert_array_equal(T_b, T)
+    # the wrong ones, found as in the benchmark: the labels unlike the room point's own
+    back = blocks.points @ T[:3, :3].T + T[:3, 3]
+    from scipy.spatial import cKDTree
+    own = labels[cKDTree(points).query(back)[1]]
+    wrong_b = blocks.probs.argmax(axis=1) != own
+    wrong_e = each.probs.argmax(axis=1) != own
+    assert 0.05 < wrong_b.mean() < 0.15 and 0.08 < wrong_e.mean() < 0.12
+    # in blocks, a wrong label's nearest neighbour in the half is often wrong too (0.68 here:
+    # blocks of about six points); point by point, about a tenth of them
+    near = cKDTree(back).query(back, k=2)[1][:, 1]
+    assert wrong_b[near][wrong_b].mean() > 0.5 and wrong_e[near][wrong_e].mean() < 0.2
+    # block by block: a flipped block holds wrong labels only, all with one class shift
+    flip, shift = block_flips(points[:5000], 0.1, 0.5, np.random.default_rng(2))
+    cube = np.floor((points[:5000] + np.random.default_rng(2).uniform(0.0, 0.5, 3)) / 0.5)
+    _, inverse = np.unique(cube, axis=0, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    for block in np.unique(inverse[flip]):
+        inside = inverse == block
+        assert flip[inside].all()
+        assert len(np.unique(shift[inside[flip]])) == 1
+    assert np.all((shift >= 1) & (shift < N_CLASSES))
+    # about a tenth of the blocks
+    assert 0.02 < len(np.unique(inverse[flip])) / len(np.unique(inverse)) < 0.2
+    for argv in (["--wrong-blocks", "0"], ["--wrong-blocks", "inf"]):
+        with pytest.raises(SystemExit) as info:
+            main(argv)
+        assert info.value.code == 2
+
+
 @pytest.mark.parametrize("argv", [["--map-error", "big"], ["--lattice-noise", "5 mm"],
                                   ["--rooms", "tum,kitchen"], ["--noise", "-0.001"],
                                   ["--noise", "nan"],
