@@ -125,6 +125,7 @@ def registration_numbers(args) -> None:
     systematic_sigma(args.systematic_sigma)
     number("--systematic-rotation-sigma", args.systematic_rotation_sigma, 0.0, math.pi,
            allow_none=True)
+    number("--plane-tilt", getattr(args, "plane_tilt", None), 0.0, math.pi, allow_none=True)
 
 
 def systematic_sigma(text) -> float | tuple[float, float, float] | None:
