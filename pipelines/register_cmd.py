@@ -200,7 +200,7 @@ def _register(args, source, target, flip=None) -> dict:
         err = pose_error(result.T, T_gt)
         out.update(d_se3=err.d_se3, t_err_m=err.t_err_m, r_err_rad=err.r_err_rad,
                    nees=float(nees(err.tangent, result.covariance)))
-    return out, result
+    return out, result, None if plugin else lattice_note(out, config)
 
 
 def registration_config(args):
@@ -311,10 +311,8 @@ def lattice_note(out: dict, config) -> str | None:
             "--plane-tilt 0.001 (docs/registration.md, \"Lattice maps of real rooms\")")
 
 
-def _print_summary(out: dict, args) -> None:
+def _print_summary(out: dict, note: str | None) -> None:
     print(_summary(out))
-    note = None if getattr(args, "estimator", None) else lattice_note(
-        out, registration_config(args))
     if note:
         print(note)
 
@@ -328,9 +326,9 @@ def run_register(args) -> int:
     registration_options(args)  # before the clouds are read
     source = _load(args.source, args.method)
     target = _load(args.target, args.method)
-    out, _ = _register(args, source, target)
+    out, _, note = _register(args, source, target)
     _write(output, out)
-    _print_summary(out, args)
+    _print_summary(out, note)
     return 0 if out["converged"] else 1
 
 
@@ -365,7 +363,7 @@ def run_calibrate(args) -> int:
         flip = np.eye(4)
         flip["xyz".index(args.flip_axis), "xyz".index(args.flip_axis)] = -1.0
         headset = headset.transformed(flip)
-    out, result = _register(args, headset, robot_map, flip)
+    out, result, note = _register(args, headset, robot_map, flip)
     out["frames"] = "T = T_map_headset (headset -> robot map)"
     if args.left_handed:
         out["frames"] += f"; headset axis {args.flip_axis} negated first (left-handed input)"
@@ -384,7 +382,7 @@ def run_calibrate(args) -> int:
         pg.add_prior(0, gtsam.Pose3(), np.eye(6) * 1e-10)
         result.add_to_pose_graph(pg, 0, 1, kind="calibration")
         write_pose_graph(args.graph, pg)
-    _print_summary(out, args)
+    _print_summary(out, note)
     return 0 if out["converged"] else 1
 
 
