@@ -21,6 +21,7 @@ from estimation.registration.correspondences import (
     NeighbourCache,
     local_means,
     neighbourhoods,
+    refreshes_beside,
 )
 
 
@@ -49,6 +50,52 @@ def test_a_cache_copy_changes_apart_and_stays_exact(rng, kind):
     np.testing.assert_array_equal(cache.query(moved)[1], idx)  # both exact: same answers
     assert twin.tree is cache.tree if kind == "geometric" else twin.index is cache.index
 
+
+
+@pytest.mark.parametrize("kind", ["geometric", "class"])
+def test_many_stale_rows_are_queried_half_beside_with_the_same_candidates(rng, kind):
+    """Inside refreshes_beside, a query with SPLIT_REFRESH_ROWS stale rows or more hands its
+    second half to ``submit`` (here a thread of its own) and keeps the candidates, reaches
+    and bounds the unsplit query gives; fewer stale rows stay on the calling thread."""
+    from estimation.registration import correspondences
+
+    target = rng.uniform(0, 1, (6000, 3))
+    n = correspondences.SPLIT_REFRESH_ROWS + 500
+    points = rng.uniform(0, 1, (n, 3))
+
+    def make():
+        if kind == "geometric":
+            return NeighbourCache(cKDTree(target), 0.05, 8, n)
+        labels = rng.integers(0, 4, len(target))
+        index = SemanticIndex(target, np.eye(4)[labels])
+        return ClassNeighbourCache(index, 0.05, np.arange(n) % 4)
+
+    plain = make()
+    split = NeighbourCache(plain.tree, 0.05, 8, n) if kind == "geometric" else \
+        ClassNeighbourCache(plain.index, 0.05, np.arange(n) % 4)
+    handed = []  # (rows handed over, thread that queried them)
+
+    class OnAnotherThread:
+        def __init__(self, fn, *args):
+            self.thread = threading.Thread(target=lambda: handed.append(
+                (len(args[1]), threading.current_thread().name, fn(*args))))
+            self.thread.start()
+
+        def result(self):
+            self.thread.join()
+
+    expected = plain.query(points)
+    with refreshes_beside(OnAnotherThread):
+        got = split.query(points)
+        assert [(rows, name != threading.current_thread().name)
+                for rows, name, _ in handed] == [(n - n // 2, True)]
+        split.query(points[:100] + 0.2, np.arange(100))  # 100 stale rows: not handed over
+    assert len(handed) == 1
+    for a, b in zip(expected, got):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(_cache_arrays(plain), _cache_arrays(split)):
+        np.testing.assert_array_equal(a[100:], b[100:])
+    assert getattr(correspondences._REFRESH_BESIDE, "submit", None) is None  # restored
 
 def _bread(reg, result, semantic_sigma):
     d_max = reg.config.max_correspondence_distance
@@ -292,3 +339,35 @@ def test_the_class_trees_are_built_on_the_second_thread_after_the_sources_tree(m
     assert built == [False, True]
     np.testing.assert_array_equal(here.T, beside.T)
     np.testing.assert_array_equal(here.covariance, beside.covariance)
+
+
+def test_a_registration_hands_half_of_a_large_refresh_to_its_second_thread(monkeypatch):
+    """Registration.run queries inside refreshes_beside(_Beside): a refresh of many stale
+    rows on its thread (the first iteration of a stage) may hand half of them to its second
+    thread, whose own refreshes are not split (no thread waits on itself); the estimate and
+    covariance are those with every refresh on one thread."""
+    from estimation.registration import correspondences
+
+    source, _, target, _, _ = make_pair(21, 6000, 0.01)
+    config = RegistrationConfig(max_correspondence_distance=0.1,
+                                initial_correspondence_distance=0.4, decay=0.25)
+    monkeypatch.setattr(correspondences, "SPLIT_REFRESH_ROWS", 10 ** 9)
+    alone = Registration(source, target, config).run()
+    monkeypatch.setattr(correspondences, "SPLIT_REFRESH_ROWS", 2000)
+    calls = []  # (thread, stale rows, what the main thread's large refreshes hand over to)
+    plain = NeighbourCache._refresh_beside
+
+    def spied(self, points, rows):
+        calls.append((threading.current_thread().name, len(rows),
+                      getattr(correspondences._REFRESH_BESIDE, "submit", None)))
+        return plain(self, points, rows)
+
+    monkeypatch.setattr(NeighbourCache, "_refresh_beside", spied)
+    split = Registration(source, target, config).run()
+    large = [submit for name, rows, submit in calls
+             if name == threading.main_thread().name and rows >= 2000]
+    assert large and all(submit is gicp._Beside for submit in large)
+    assert all(submit is None for name, _, submit in calls
+               if name != threading.main_thread().name)  # (the second thread: no split)
+    np.testing.assert_array_equal(split.T, alone.T)
+    np.testing.assert_array_equal(split.covariance, alone.covariance)
