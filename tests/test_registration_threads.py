@@ -21,7 +21,7 @@ from estimation.registration.correspondences import (
     NeighbourCache,
     local_means,
     neighbourhoods,
-    refreshes_beside,
+    searches_beside,
 )
 
 
@@ -54,7 +54,7 @@ def test_a_cache_copy_changes_apart_and_stays_exact(rng, kind):
 
 @pytest.mark.parametrize("kind", ["geometric", "class"])
 def test_many_stale_rows_are_queried_half_beside_with_the_same_candidates(rng, kind):
-    """Inside refreshes_beside, a query with SPLIT_REFRESH_ROWS stale rows or more hands its
+    """Inside searches_beside, a query with SPLIT_REFRESH_ROWS stale rows or more hands its
     second half to ``submit`` (here a thread of its own) and keeps the candidates, reaches
     and bounds the unsplit query gives; fewer stale rows stay on the calling thread."""
     from estimation.registration import correspondences
@@ -85,7 +85,7 @@ def test_many_stale_rows_are_queried_half_beside_with_the_same_candidates(rng, k
             self.thread.join()
 
     expected = plain.query(points)
-    with refreshes_beside(OnAnotherThread):
+    with searches_beside(OnAnotherThread):
         got = split.query(points)
         assert [(rows, name != threading.current_thread().name)
                 for rows, name, _ in handed] == [(n - n // 2, True)]
@@ -95,7 +95,50 @@ def test_many_stale_rows_are_queried_half_beside_with_the_same_candidates(rng, k
         np.testing.assert_array_equal(a, b)
     for a, b in zip(_cache_arrays(plain), _cache_arrays(split)):
         np.testing.assert_array_equal(a[100:], b[100:])
-    assert getattr(correspondences._REFRESH_BESIDE, "submit", None) is None  # restored
+    assert getattr(correspondences._SEARCH_BESIDE, "submit", None) is None  # restored
+
+
+def test_class_tree_queries_are_split_beside_with_the_same_candidates(rng):
+    """Semantic-ICP's class candidates from the class trees (no caches): inside
+    searches_beside, with SPLIT_CLASS_ROWS rows or more, part of the classes are queried
+    through ``submit`` (another thread) and the pairs and weights are those of one thread;
+    fewer rows stay on the calling thread."""
+    from estimation.registration import correspondences
+    from estimation.registration.correspondences import semantic_correspondences
+
+    c = 6
+    target = rng.uniform(0, 1, (5000, 3))
+    index = SemanticIndex(target, np.eye(c)[rng.integers(0, c, len(target))])
+    n = correspondences.SPLIT_CLASS_ROWS + 800
+    points = rng.uniform(0, 1, (n, 3))
+    probs = rng.dirichlet(np.ones(c) * 0.5, n)  # (second classes probable for many points)
+    handed = []
+
+    class OnAnotherThread:
+        def __init__(self, fn, *args):
+            def run():
+                handed.append((threading.current_thread().name, sum(len(p) for _, p in args[0])))
+                fn(*args)
+            self.thread = threading.Thread(target=run)
+            self.thread.start()
+
+        def result(self):
+            self.thread.join()
+
+    def pairs(pts, prb):
+        corr = semantic_correspondences(pts, prb, index, 0.1, residual_sigma=0.05)
+        return corr.source_idx, corr.target_idx, corr.weights, corr.distances
+
+    expected = pairs(points, probs)
+    with searches_beside(OnAnotherThread):
+        got = pairs(points, probs)
+        assert handed and all(name != threading.current_thread().name for name, _ in handed)
+        assert all(0 < rows < n for _, rows in handed)  # (a part of the rows, not all)
+        count = len(handed)
+        pairs(points[:100], probs[:100])  # 100 rows: not handed over
+        assert len(handed) == count
+    for a, b in zip(expected, got):
+        np.testing.assert_array_equal(a, b)
 
 def _bread(reg, result, semantic_sigma):
     d_max = reg.config.max_correspondence_distance
@@ -342,7 +385,7 @@ def test_the_class_trees_are_built_on_the_second_thread_after_the_sources_tree(m
 
 
 def test_a_registration_hands_half_of_a_large_refresh_to_its_second_thread(monkeypatch):
-    """Registration.run queries inside refreshes_beside(_Beside): a refresh of many stale
+    """Registration.run queries inside searches_beside(_Beside): a refresh of many stale
     rows on its thread (the first iteration of a stage) may hand half of them to its second
     thread, whose own refreshes are not split (no thread waits on itself); the estimate and
     covariance are those with every refresh on one thread."""
@@ -359,7 +402,7 @@ def test_a_registration_hands_half_of_a_large_refresh_to_its_second_thread(monke
 
     def spied(self, points, rows):
         calls.append((threading.current_thread().name, len(rows),
-                      getattr(correspondences._REFRESH_BESIDE, "submit", None)))
+                      getattr(correspondences._SEARCH_BESIDE, "submit", None)))
         return plain(self, points, rows)
 
     monkeypatch.setattr(NeighbourCache, "_refresh_beside", spied)

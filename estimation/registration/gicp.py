@@ -45,7 +45,7 @@ from .correspondences import (
     nearest_correspondences,
     neighbourhoods,
     queries_beside,
-    refreshes_beside,
+    searches_beside,
     semantic_correspondences,
     sheets_possible,
     threads_beside,
@@ -1802,7 +1802,7 @@ class Registration:
         # the second thread works beside this one throughout (preparations, the reverse):
         # this thread's queries leave it its core (:func:`.correspondences.queries_beside`),
         # and so do BLAS's workers
-        with queries_beside(), blas_threads(threads_beside()), refreshes_beside(_Beside):
+        with queries_beside(), blas_threads(threads_beside()), searches_beside(_Beside):
             result = self._run(init)
             cfg = self.config
             if (not self.semantic or not cfg.semantic_rescue or _trusted(result)
