@@ -414,3 +414,37 @@ def test_a_registration_hands_half_of_a_large_refresh_to_its_second_thread(monke
                if name != threading.main_thread().name)  # (the second thread: no split)
     np.testing.assert_array_equal(split.T, alone.T)
     np.testing.assert_array_equal(split.covariance, alone.covariance)
+
+
+def test_a_lattice_maps_finish_measures_beside_with_the_same_result(monkeypatch):
+    """On a voxel lattice (no reverse direction) the finish hands the lattice's cells and the
+    off-surface share to the second thread (through _Beside); with every _Beside task done
+    on the calling thread instead, the estimate, covariance and diagnostic are the same."""
+    source, target, _ = voxel_map_pair(5, 3000, 30000)
+    config = RegistrationConfig(max_correspondence_distance=0.1)
+    handed = []
+    plain = gicp._Beside.__init__
+
+    def spied(self, fn, *args):
+        handed.append(getattr(fn, "__name__", ""))
+        plain(self, fn, *args)
+
+    monkeypatch.setattr(gicp._Beside, "__init__", spied)
+    reg = Registration(source, target, config)
+    beside = reg.run()
+    assert reg.quantisation_pitch is not None
+    assert {"_lattice_grid", "coverage"} <= set(handed)
+
+    class Here:  # (each task run at once, on the calling thread)
+        def __init__(self, fn, *args):
+            self.value = fn(*args)
+
+        def result(self, *here):
+            return self.value
+
+    monkeypatch.setattr(gicp, "_Beside", Here)
+    here = Registration(source, target, config).run()
+    np.testing.assert_array_equal(here.T, beside.T)
+    np.testing.assert_array_equal(here.covariance, beside.covariance)
+    assert here.diagnostic.off_surface == beside.diagnostic.off_surface
+    assert here.diagnostic.trusted == beside.diagnostic.trusted

@@ -1214,9 +1214,7 @@ class Registration:
         as a (R, 27) mask over :data:`BLOCK_OFFSETS`; None without local surface positions."""
         if self._means_radius is None:
             return None
-        if self._lattice_cells is None:  # each voxel centre in the middle of its cell
-            self._lattice_cells = grid_cells(self.target, pitch, self.target[0] - 0.5 * pitch)
-        cells = self._lattice_cells
+        cells = self._lattice_grid(pitch)
         if cells is None:
             return None
 
@@ -1228,6 +1226,13 @@ class Registration:
             return occupied
 
         return neighbourhood
+
+    def _lattice_grid(self, pitch: float) -> VoxelGrid | None:
+        """The target lattice's cells, each voxel centre in the middle of its cell (built on
+        first use; None where :func:`grid_cells` finds no grid)."""
+        if self._lattice_cells is None:
+            self._lattice_cells = grid_cells(self.target, pitch, self.target[0] - 0.5 * pitch)
+        return self._lattice_cells
 
     def matched_points(self, corr: Correspondences) -> tuple[np.ndarray, np.ndarray]:
         """Return the (source, target) positions the residuals of ``corr`` are measured between.
@@ -2040,14 +2045,21 @@ class Registration:
         cfg = self.config
         if isinstance(self._grid, int):  # still undecided: the matching stays as it ran
             self._grid = None
+        pitch = self.quantisation_pitch
+        sandwich = cfg.covariance == "sandwich"
+        # on a lattice there is no reverse direction and the second thread is free: it builds
+        # the lattice's cells (the quantisation term's neighbourhoods) and, below, measures
+        # the off-surface share while this one computes the solution's terms (the simulated
+        # room at 10k points: 7 of the 23-29 ms here; in-process A/B, bit-identical: 1.6-4 %
+        # less time a Semantic-ICP registration)
+        cells = (_Beside(self._lattice_grid, pitch) if sandwich and pitch is not None
+                 and self._means_radius is not None and self._lattice_cells is None else None)
         # (Semantic-ICP: the E-step at the solution sets the sigma the reverse direction takes)
         corr = self.correspondences(T, d_max)
         if len(corr) < cfg.min_inliers:
             return self._failed(T, "too few correspondences at the solution",
                                 start, iterations, cost_log)
         block = self.cluster_size(T, corr)
-        pitch = self.quantisation_pitch
-        sandwich = cfg.covariance == "sandwich"
         # the reverse direction of the symmetric estimate depends only on T: it runs on a
         # second thread while this direction's covariance is computed (its KD-tree queries
         # and kernels release the GIL; the result is the same on one thread). It starts before
@@ -2078,7 +2090,7 @@ class Registration:
             covered, target_covered, off_surface = self.coverage(T, block)
             overlap = (covered, target_covered)
         elif sandwich and converged:  # on a lattice: no overlap rule, but the share
-            off_surface = self.coverage(T, block)[2]
+            off_surface = _Beside(self.coverage, T, block)
         # a part of a map registered to that map (no lattice term): trusted only with the
         # map's representation error in the covariance (map_error) and every point on the
         # map's surfaces (INSIDE_TRUSTED_COVERAGE; docs/registration.md, "Real rooms")
@@ -2108,6 +2120,8 @@ class Registration:
         B = clustered.T @ clustered
         # model error: a voxel lattice's quantisation offsets, common to whole planes
         B_model = np.zeros((6, 6))
+        if cells is not None:
+            cells.result()
         if pitch is not None:
             B_model = quantisation_information(
                 sol.normals, tgt, sol.sensitivity, pitch,
@@ -2155,6 +2169,8 @@ class Registration:
             share = float(np.trace(cov_model * S2[:, None]) / np.trace(cov * S2[:, None])) \
                 if modelled and not unconstrained else 0.0
             ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
+            if isinstance(off_surface, _Beside):
+                off_surface = off_surface.result()[2]
             diagnostic = CovarianceDiagnostic(
                 pitch, share, ratio, ratio <= cfg.trust_ratio and (not inside or (
                     map_error is not None and overlap[0] >= INSIDE_TRUSTED_COVERAGE)),
