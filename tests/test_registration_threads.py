@@ -140,34 +140,6 @@ def test_class_tree_queries_are_split_beside_with_the_same_candidates(rng):
     for a, b in zip(expected, got):
         np.testing.assert_array_equal(a, b)
 
-
-def test_many_missing_covariances_are_computed_half_beside(rng):
-    """LazyCovariances.filled inside searches_beside: with SPLIT_FILL_ROWS missing rows or
-    more, part of them are computed through ``submit`` (another thread), the values those
-    of one thread; with fewer, none is handed over."""
-    from estimation.registration import correspondences
-
-    points = rng.uniform(0, 1, (4000, 3)) * [1, 1, 0.05]
-    tree = cKDTree(points)
-    n = correspondences.SPLIT_FILL_ROWS + 300
-    rows = rng.choice(len(points), n, replace=False)
-    expected = LazyCovariances(points, tree, 20, 1e-3).filled(rows)[rows]
-    handed = []
-
-    def submit(fn, *args):  # (run on a thread of its own, not waited for, as the executor)
-        handed.append(len(args[0]))
-        thread = threading.Thread(target=fn, args=args)
-        thread.start()
-        return thread
-
-    lazy = LazyCovariances(points, tree, 20, 1e-3)
-    with searches_beside(submit):
-        got = lazy.filled(rows)[rows]
-        assert lazy.done[rows].all() and handed and 0 < handed[0] < n
-        lazy.filled(rng.choice(len(points), 100, replace=False))  # (at most 100 missing)
-        assert len(handed) == 1
-    np.testing.assert_array_equal(got, expected)
-
 def _bread(reg, result, semantic_sigma):
     d_max = reg.config.max_correspondence_distance
     reg._sigma = semantic_sigma

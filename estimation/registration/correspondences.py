@@ -38,11 +38,6 @@ SPLIT_REFRESH_ROWS = 2000
 # simulated room at 10k points 2.5-4 % less time with 50 % right labels, 2.7 % with all
 # right; the scan's halves with 24 classes 1.6-2 %; 300 rows no better than 1000
 SPLIT_CLASS_ROWS = 1000
-# missing covariance rows from which a whitening's rows are computed half beside
-# (LazyCovariances.filled: the rows newly matched in an annealing iteration, 400-1600
-# of them on the simulated room). Measured on two cores, in-process A/B, bit-identical:
-# 1-3 % less time (the simulated room, the scan's halves; GICP-SE(3) 2.5-3 %)
-SPLIT_FILL_ROWS = 512
 
 
 def kd_tree(points: np.ndarray) -> cKDTree:
@@ -99,10 +94,9 @@ def searches_beside(submit):
     """While inside, large searches on this thread hand part of their work to ``submit(function,
     *args)`` (returning an object whose ``result()`` waits for it, e.g. on the other thread of
     a registration) and do the rest themselves: a neighbour cache's refresh of at least
-    SPLIT_REFRESH_ROWS stale rows (:meth:`NeighbourCache._refresh_beside`), the class
-    trees' queries of Semantic-ICP's class candidates (:func:`semantic_correspondences`) and
-    at least SPLIT_FILL_ROWS missing covariance rows (:meth:`LazyCovariances.filled`). The
-    same answers on either thread."""
+    SPLIT_REFRESH_ROWS stale rows (:meth:`NeighbourCache._refresh_beside`) and the class
+    trees' queries of Semantic-ICP's class candidates (:func:`semantic_correspondences`).
+    The same answers on either thread."""
     previous = getattr(_SEARCH_BESIDE, "submit", None)
     _SEARCH_BESIDE.submit = submit
     try:
@@ -284,14 +278,8 @@ class LazyCovariances:
         return self.values[idx]
 
     def filled(self, idx: np.ndarray) -> np.ndarray:
-        """Return the whole (N, 3, 3) array with (at least) the rows ``idx`` computed; inside
-        :func:`searches_beside`, at least SPLIT_FILL_ROWS missing rows are computed half
-        beside (:meth:`fill_beside`)."""
-        submit = getattr(_SEARCH_BESIDE, "submit", None)
-        if submit is not None and np.count_nonzero(~self.done[idx]) >= SPLIT_FILL_ROWS:
-            self.fill_beside(idx, submit)
-        else:
-            self._fill(idx)
+        """Return the whole (N, 3, 3) array with (at least) the rows ``idx`` computed."""
+        self._fill(idx)
         return self.values
 
     def thickness(self, idx: np.ndarray) -> np.ndarray:
