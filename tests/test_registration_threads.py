@@ -21,7 +21,6 @@ from estimation.registration.correspondences import (
     NeighbourCache,
     local_means,
     neighbourhoods,
-    searches_beside,
 )
 
 
@@ -50,95 +49,6 @@ def test_a_cache_copy_changes_apart_and_stays_exact(rng, kind):
     np.testing.assert_array_equal(cache.query(moved)[1], idx)  # both exact: same answers
     assert twin.tree is cache.tree if kind == "geometric" else twin.index is cache.index
 
-
-
-@pytest.mark.parametrize("kind", ["geometric", "class"])
-def test_many_stale_rows_are_queried_half_beside_with_the_same_candidates(rng, kind):
-    """Inside searches_beside, a query with SPLIT_REFRESH_ROWS stale rows or more hands its
-    second half to ``submit`` (here a thread of its own) and keeps the candidates, reaches
-    and bounds the unsplit query gives; fewer stale rows stay on the calling thread."""
-    from estimation.registration import correspondences
-
-    target = rng.uniform(0, 1, (6000, 3))
-    n = correspondences.SPLIT_REFRESH_ROWS + 500
-    points = rng.uniform(0, 1, (n, 3))
-
-    def make():
-        if kind == "geometric":
-            return NeighbourCache(cKDTree(target), 0.05, 8, n)
-        labels = rng.integers(0, 4, len(target))
-        index = SemanticIndex(target, np.eye(4)[labels])
-        return ClassNeighbourCache(index, 0.05, np.arange(n) % 4)
-
-    plain = make()
-    split = NeighbourCache(plain.tree, 0.05, 8, n) if kind == "geometric" else \
-        ClassNeighbourCache(plain.index, 0.05, np.arange(n) % 4)
-    handed = []  # (rows handed over, thread that queried them)
-
-    class OnAnotherThread:
-        def __init__(self, fn, *args):
-            self.thread = threading.Thread(target=lambda: handed.append(
-                (len(args[1]), threading.current_thread().name, fn(*args))))
-            self.thread.start()
-
-        def result(self):
-            self.thread.join()
-
-    expected = plain.query(points)
-    with searches_beside(OnAnotherThread):
-        got = split.query(points)
-        assert [(rows, name != threading.current_thread().name)
-                for rows, name, _ in handed] == [(n - n // 2, True)]
-        split.query(points[:100] + 0.2, np.arange(100))  # 100 stale rows: not handed over
-    assert len(handed) == 1
-    for a, b in zip(expected, got):
-        np.testing.assert_array_equal(a, b)
-    for a, b in zip(_cache_arrays(plain), _cache_arrays(split)):
-        np.testing.assert_array_equal(a[100:], b[100:])
-    assert getattr(correspondences._SEARCH_BESIDE, "submit", None) is None  # restored
-
-
-def test_class_tree_queries_are_split_beside_with_the_same_candidates(rng):
-    """Semantic-ICP's class candidates from the class trees (no caches): inside
-    searches_beside, with SPLIT_CLASS_ROWS rows or more, part of the classes are queried
-    through ``submit`` (another thread) and the pairs and weights are those of one thread;
-    fewer rows stay on the calling thread."""
-    from estimation.registration import correspondences
-    from estimation.registration.correspondences import semantic_correspondences
-
-    c = 6
-    target = rng.uniform(0, 1, (5000, 3))
-    index = SemanticIndex(target, np.eye(c)[rng.integers(0, c, len(target))])
-    n = correspondences.SPLIT_CLASS_ROWS + 800
-    points = rng.uniform(0, 1, (n, 3))
-    probs = rng.dirichlet(np.ones(c) * 0.5, n)  # (second classes probable for many points)
-    handed = []
-
-    class OnAnotherThread:
-        def __init__(self, fn, *args):
-            def run():
-                handed.append((threading.current_thread().name, sum(len(p) for _, p in args[0])))
-                fn(*args)
-            self.thread = threading.Thread(target=run)
-            self.thread.start()
-
-        def result(self):
-            self.thread.join()
-
-    def pairs(pts, prb):
-        corr = semantic_correspondences(pts, prb, index, 0.1, residual_sigma=0.05)
-        return corr.source_idx, corr.target_idx, corr.weights, corr.distances
-
-    expected = pairs(points, probs)
-    with searches_beside(OnAnotherThread):
-        got = pairs(points, probs)
-        assert handed and all(name != threading.current_thread().name for name, _ in handed)
-        assert all(0 < rows < n for _, rows in handed)  # (a part of the rows, not all)
-        count = len(handed)
-        pairs(points[:100], probs[:100])  # 100 rows: not handed over
-        assert len(handed) == count
-    for a, b in zip(expected, got):
-        np.testing.assert_array_equal(a, b)
 
 def _bread(reg, result, semantic_sigma):
     d_max = reg.config.max_correspondence_distance
@@ -382,38 +292,6 @@ def test_the_class_trees_are_built_on_the_second_thread_after_the_sources_tree(m
     assert built == [False, True]
     np.testing.assert_array_equal(here.T, beside.T)
     np.testing.assert_array_equal(here.covariance, beside.covariance)
-
-
-def test_a_registration_hands_half_of_a_large_refresh_to_its_second_thread(monkeypatch):
-    """Registration.run queries inside searches_beside(_Beside): a refresh of many stale
-    rows on its thread (the first iteration of a stage) may hand half of them to its second
-    thread, whose own refreshes are not split (no thread waits on itself); the estimate and
-    covariance are those with every refresh on one thread."""
-    from estimation.registration import correspondences
-
-    source, _, target, _, _ = make_pair(21, 6000, 0.01)
-    config = RegistrationConfig(max_correspondence_distance=0.1,
-                                initial_correspondence_distance=0.4, decay=0.25)
-    monkeypatch.setattr(correspondences, "SPLIT_REFRESH_ROWS", 10 ** 9)
-    alone = Registration(source, target, config).run()
-    monkeypatch.setattr(correspondences, "SPLIT_REFRESH_ROWS", 2000)
-    calls = []  # (thread, stale rows, what the main thread's large refreshes hand over to)
-    plain = NeighbourCache._refresh_beside
-
-    def spied(self, points, rows):
-        calls.append((threading.current_thread().name, len(rows),
-                      getattr(correspondences._SEARCH_BESIDE, "submit", None)))
-        return plain(self, points, rows)
-
-    monkeypatch.setattr(NeighbourCache, "_refresh_beside", spied)
-    split = Registration(source, target, config).run()
-    large = [submit for name, rows, submit in calls
-             if name == threading.main_thread().name and rows >= 2000]
-    assert large and all(submit is gicp._Beside for submit in large)
-    assert all(submit is None for name, _, submit in calls
-               if name != threading.main_thread().name)  # (the second thread: no split)
-    np.testing.assert_array_equal(split.T, alone.T)
-    np.testing.assert_array_equal(split.covariance, alone.covariance)
 
 
 def test_a_lattice_maps_finish_measures_beside_with_the_same_result(monkeypatch):

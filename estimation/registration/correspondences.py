@@ -25,19 +25,6 @@ _kernels = kernels("estimation.registration._kernels")
 
 
 _QUERY_THREADS = threading.local()
-_SEARCH_BESIDE = threading.local()
-# stale rows from which a neighbour cache's queries are split between two threads
-# (NeighbourCache._refresh_beside): the first iteration at the final d_max queries every row
-# where the prepared cache would not have outlasted the last steps (the scan's 15k-point
-# halves: 25 ms on one thread, the other idle). Measured on two cores, in-process A/B,
-# bit-identical: the scan's halves with 24 classes 1.6-2.0 % less time (both methods)
-SPLIT_REFRESH_ROWS = 2000
-# class candidates' rows from which their class trees' queries are split between two
-# threads (_class_queries: the annealing stages' class candidates, before the class
-# caches). Measured on two cores, in-process A/B, bit-identical: Semantic-ICP on the
-# simulated room at 10k points 2.5-4 % less time with 50 % right labels, 2.7 % with all
-# right; the scan's halves with 24 classes 1.6-2 %; 300 rows no better than 1000
-SPLIT_CLASS_ROWS = 1000
 
 
 def kd_tree(points: np.ndarray) -> cKDTree:
@@ -87,22 +74,6 @@ def queries_beside():
             del _QUERY_THREADS.workers
         else:
             _QUERY_THREADS.workers = previous
-
-
-@contextmanager
-def searches_beside(submit):
-    """While inside, large searches on this thread hand part of their work to ``submit(function,
-    *args)`` (returning an object whose ``result()`` waits for it, e.g. on the other thread of
-    a registration) and do the rest themselves: a neighbour cache's refresh of at least
-    SPLIT_REFRESH_ROWS stale rows (:meth:`NeighbourCache._refresh_beside`) and the class
-    trees' queries of Semantic-ICP's class candidates (:func:`semantic_correspondences`).
-    The same answers on either thread."""
-    previous = getattr(_SEARCH_BESIDE, "submit", None)
-    _SEARCH_BESIDE.submit = submit
-    try:
-        yield
-    finally:
-        _SEARCH_BESIDE.submit = previous
 
 
 def point_covariances(points: np.ndarray, k: int = 20, epsilon: float = 1e-3,
@@ -730,30 +701,16 @@ class NeighbourCache:
     def _scanned(self, points: np.ndarray, rows: np.ndarray | None, scan) -> tuple:
         """``scan(points, rows, which)`` (a candidate-scan kernel of those of the query's
         points, ``which`` indexing them; its third output flags the stale ones) of the cache's
-        ``rows``; the stale points are queried again (:meth:`_refresh_beside`) and scanned
-        anew."""
+        ``rows``; the stale points are queried again and scanned anew."""
         points = np.ascontiguousarray(points, dtype=float)
         rows = self._rows(points, rows)
         out = scan(points, rows, slice(None))
         stale = np.nonzero(out[2])[0]
         if len(stale):
-            self._refresh_beside(points[stale], rows[stale])
+            self._refresh(points[stale], rows[stale])
             for whole, part in zip(out, scan(points[stale], rows[stale], stale)):
                 whole[stale] = part
         return out
-
-    def _refresh_beside(self, points: np.ndarray, rows: np.ndarray) -> None:
-        """:meth:`_refresh`; inside :func:`searches_beside` (on this thread), many rows are
-        split in two and the second half queried by its ``submit`` (the other thread). Each
-        row's candidates do not depend on the thread or on the other rows."""
-        submit = getattr(_SEARCH_BESIDE, "submit", None)
-        if submit is None or len(rows) < SPLIT_REFRESH_ROWS:
-            self._refresh(points, rows)
-            return
-        half = len(rows) // 2
-        rest = submit(self._refresh, points[half:], rows[half:])
-        self._refresh(points[:half], rows[:half])
-        rest.result()
 
     def query(self, points: np.ndarray, rows: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
@@ -905,30 +862,6 @@ def top_class_order(probs: np.ndarray, top: int) -> np.ndarray:
                                 int(min(top, probs.shape[1])))
 
 
-def _class_queries(parts: list, index: SemanticIndex, points: np.ndarray, d_max: float,
-                   dist: np.ndarray, j: np.ndarray) -> None:
-    """Write into ``dist`` and ``j`` the nearest target point of class c within ``d_max`` of
-    ``points[part]`` (its class tree's k=1 query) for each (c, part) of ``parts``; inside
-    :func:`searches_beside`, with at least SPLIT_CLASS_ROWS rows, the classes are split in
-    two by their rows and the second half queried beside (disjoint rows of the outputs)."""
-    def query(share):
-        for c, part in share:
-            d, q = index.trees[c].query(points[part], k=1, distance_upper_bound=d_max,
-                                        workers=_workers(len(part)))
-            ok = np.isfinite(d)
-            dist[part[ok]], j[part[ok]] = d[ok], index.members[c][q[ok]]
-
-    submit = getattr(_SEARCH_BESIDE, "submit", None)
-    sizes = np.cumsum([len(part) for _, part in parts])
-    if submit is None or len(parts) < 2 or sizes[-1] < SPLIT_CLASS_ROWS:
-        query(parts)
-        return
-    half = min(int(np.searchsorted(sizes, sizes[-1] / 2)) + 1, len(parts) - 1)
-    rest = submit(query, parts[half:])
-    query(parts[:half])
-    rest.result()
-
-
 def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndarray,
                              index: SemanticIndex, d_max: float,
                              residual_sigma: float, top_classes: int = 2,
@@ -1027,9 +960,14 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
             dist[ask], j[ask] = cache.query_classes(points[ask], cache_rows[ask], classes[ask])
         elif len(ask):
             starts, grouped = _kernels.group_rows(classes[ask], np.ones(len(ask), bool), c_src)
-            parts = [(c, ask[grouped[starts[c]:starts[c + 1]]]) for c in index.trees]
-            _class_queries([(c, part) for c, part in parts if len(part)], index, points,
-                           d_max, dist, j)
+            for c, tree in index.trees.items():
+                part = ask[grouped[starts[c]:starts[c + 1]]]
+                if len(part) == 0:
+                    continue
+                d, q = tree.query(points[part], k=1,
+                                  distance_upper_bound=d_max, workers=_workers(len(part)))
+                ok = np.isfinite(d)
+                dist[part[ok]], j[part[ok]] = d[ok], index.members[c][q[ok]]
         ok = np.isfinite(dist)
         rank_target[rank, found[ok]] = j[ok]
         rank_dist[rank, found[ok]] = dist[ok]

@@ -45,7 +45,6 @@ from .correspondences import (
     nearest_correspondences,
     neighbourhoods,
     queries_beside,
-    searches_beside,
     semantic_correspondences,
     sheets_possible,
     threads_beside,
@@ -1807,7 +1806,7 @@ class Registration:
         # the second thread works beside this one throughout (preparations, the reverse):
         # this thread's queries leave it its core (:func:`.correspondences.queries_beside`),
         # and so do BLAS's workers
-        with queries_beside(), blas_threads(threads_beside()), searches_beside(_Beside):
+        with queries_beside(), blas_threads(threads_beside()):
             result = self._run(init)
             cfg = self.config
             if (not self.semantic or not cfg.semantic_rescue or _trusted(result)
@@ -2050,7 +2049,7 @@ class Registration:
         # on a lattice there is no reverse direction and the second thread is free: it builds
         # the lattice's cells (the quantisation term's neighbourhoods) and, below, measures
         # the off-surface share while this one computes the solution's terms (the simulated
-        # room at 10k points: 7 of the 23-29 ms here; in-process A/B, bit-identical: 1.6-4 %
+        # room at 10k points: 7 of the 23-29 ms here; in-process A/B, bit-identical: 2-5 %
         # less time a Semantic-ICP registration)
         cells = (_Beside(self._lattice_grid, pitch) if sandwich and pitch is not None
                  and self._means_radius is not None and self._lattice_cells is None else None)
