@@ -2083,11 +2083,12 @@ class Registration:
         if symmetric and not isinstance(self._grid, VoxelGrid):
             reverse = start_reverse()
         overlap, off_surface = (float("nan"), float("nan")), float("nan")
+        lattice_coverage = None  # (on a lattice: measured beside, collected for the diagnostic)
         if sandwich and pitch is None and converged:
             covered, target_covered, off_surface = self.coverage(T, block)
             overlap = (covered, target_covered)
         elif sandwich and converged:  # on a lattice: no overlap rule, but the share
-            off_surface = _Beside(self.coverage, T, block)
+            lattice_coverage = _Beside(self.coverage, T, block)
         # a part of a map registered to that map (no lattice term): trusted only with the
         # map's representation error in the covariance (map_error) and every point on the
         # map's surfaces (INSIDE_TRUSTED_COVERAGE; docs/registration.md, "Real rooms")
@@ -2166,8 +2167,8 @@ class Registration:
             share = float(np.trace(cov_model * S2[:, None]) / np.trace(cov * S2[:, None])) \
                 if modelled and not unconstrained else 0.0
             ratio = float(np.trace(np.linalg.solve(cov, cov_wide)) / 6.0)
-            if isinstance(off_surface, _Beside):
-                off_surface = off_surface.result()[2]
+            if lattice_coverage is not None:
+                off_surface = lattice_coverage.result()[2]
             diagnostic = CovarianceDiagnostic(
                 pitch, share, ratio, ratio <= cfg.trust_ratio and (not inside or (
                     map_error is not None and overlap[0] >= INSIDE_TRUSTED_COVERAGE)),
