@@ -243,6 +243,51 @@ def test_class_neighbours_from_the_geometric_cache_are_exact(rng, d_max):
     assert min(resolved) > 0.6
 
 
+
+@pytest.mark.parametrize("posterior", [True, False])
+def test_cached_class_candidates_equal_the_class_trees(rng, posterior):
+    """Semantic-ICP's class candidates from the class caches (one kernel pass per rank,
+    stale rows queried again) are the class trees' answers: two ranks of soft labels, some
+    rows asked, the first rank's answer from the geometric scan (posterior E-step) or none
+    (the annealing's scores), rows whose most probable class changes, small and large
+    motions. The same pairs and weights as without caches, call after call."""
+    from estimation.registration.correspondences import NeighbourCache, top_class_order
+
+    c, d_max = 5, 0.08
+    target = rng.uniform(0, 1, (4000, 3))
+    labels = (target[:, 0] > 0.5).astype(np.int64) + 2 * (target[:, 1] > 0.5)
+    labels[:40] = 4  # a rare class
+    index = SemanticIndex(target, np.eye(c)[labels])
+    n = 1000
+    points = rng.uniform(0, 1, (n, 3))
+    probs = rng.dirichlet(np.full(c, 0.3), n)  # soft: a second class above 0.1 for many
+    geometric = NeighbourCache(cKDTree(target), d_max, 8, n)
+    caches: dict = {}
+    second = []
+    for step, rows in ((0.0, None), (1e-3, None), (1e-2, np.arange(0, n, 3)), (0.05, None),
+                       (1e-4, rng.permutation(n)[:400]), (1e-4, None)):
+        points = points + rng.normal(0, step, points.shape)
+        if step == 0.05:  # labels change: rows asked for another class than cached
+            probs = probs[rng.permutation(n)]
+        moved, p = (points, probs) if rows is None else (points[rows], probs[rows])
+        order = top_class_order(p, 2)
+        second.append(np.mean(p[np.arange(len(p)), order[:, 1]] >= 0.1))
+        kwargs = dict(residual_sigma=0.02, posterior=posterior, order=order, rows=rows)
+        first = nearest = None
+        if posterior:
+            dist, j, *first = geometric.query_with_class(moved, rows, index.labels,
+                                                         np.ascontiguousarray(order[:, 0]))
+            nearest = dist, j
+        cached = semantic_correspondences(
+            moved, p, index, d_max, nearest=nearest, caches=caches,
+            geometric=geometric if posterior else None,
+            first_class=None if first is None else tuple(first), **kwargs)
+        plain = semantic_correspondences(moved, p, index, d_max, nearest=nearest, **kwargs)
+        for name in ("source_idx", "target_idx", "weights", "distances"):
+            np.testing.assert_array_equal(getattr(cached, name), getattr(plain, name))
+    assert min(second) > 0.3  # the second rank was searched
+
+
 def test_lazy_covariances_equal_the_full_computation(rng):
     from scipy.spatial import cKDTree
 

@@ -556,6 +556,59 @@ def class_cached_nearest(points, rows, anchor, bound, reach, candidates, target,
 
 
 @numba.njit(cache=True)
+def class_rank_cached(points, rows, which, order, rank, probs, min_class_prob, first_dist,
+                      first_idx, first_unresolved, g_anchor, g_bound, g_reach, g_candidates,
+                      target, labels, c_anchor, c_reach, c_candidates, c_classes, d_max,
+                      rank_target, rank_dist):
+    """Semantic-ICP's class candidates of one ``rank`` from cached candidates, for the points
+    ``which``: the nearest target point labelled ``order[m, rank]`` within d_max, written to
+    ``rank_target[rank, m]`` and ``rank_dist[rank, m]`` (left as they are where none).
+
+    Rank 0 asks every point, the others those whose class has ``probs`` at least
+    ``min_class_prob``. The answer comes, in turn, from ``first_*`` (rank 0, where given:
+    :func:`cached_nearest_and_class`'s class answer; an empty ``first_dist`` where not), from
+    the geometric cache's candidates where they decide it (as :func:`class_cached_nearest`;
+    an empty ``g_reach``: no geometric cache), or from the class cache (``c_*``: its rows
+    ``rows[m]``, ``c_classes`` the class each row was queried for), as
+    :func:`cached_nearest`. Returns the points whose class-cache row is stale (moved beyond
+    its reach, never queried, or queried for another class): query them again, then again
+    here."""
+    use_first = first_dist.shape[0] > 0
+    use_geometric = g_reach.shape[0] > 0
+    stale = np.empty(which.shape[0], dtype=np.int64)
+    n_stale = 0
+    for p in range(which.shape[0]):
+        m = which[p]
+        c = order[m, rank]
+        if rank > 0 and not probs[m, c] >= min_class_prob:
+            continue
+        r = rows[m]
+        if rank == 0 and use_first:
+            dist, idx, unresolved = first_dist[m], first_idx[m], first_unresolved[m]
+        elif use_geometric and g_reach[r] >= 0.0:
+            _, _, best_c, best_cj = _scan_candidates(points, m, g_candidates, r, target,
+                                                     labels, c)
+            dist, idx, unresolved = _class_decided(
+                best_c, best_cj, g_bound[r] - np.sqrt(_moved_squared(points, m, g_anchor, r)),
+                d_max)
+        else:
+            dist, idx, unresolved = np.inf, -1, True
+        if unresolved:
+            if (c_classes[r] != c or c_reach[r] < 0.0
+                    or not _moved_squared(points, m, c_anchor, r) <= c_reach[r] * c_reach[r]):
+                stale[n_stale] = m
+                n_stale += 1
+                continue
+            best, best_j, _, _ = _scan_candidates(points, m, c_candidates, r, target, rows, -1)
+            dist, idx = np.inf, -1
+            if best <= d_max * d_max:
+                dist, idx = np.sqrt(best), best_j
+        if idx >= 0:
+            rank_target[rank, m], rank_dist[rank, m] = idx, dist
+    return stale[:n_stale]
+
+
+@numba.njit(cache=True)
 def top_classes(probs, top):
     """Each row's ``top`` most probable classes, best first (ties: the lower class, as
     repeated ``argmax`` with the chosen entries masked)."""

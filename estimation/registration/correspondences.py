@@ -756,7 +756,8 @@ class NeighbourCache:
 
 class ClassNeighbourCache(NeighbourCache):
     """:class:`NeighbourCache` for class-conditioned queries: each row searches the tree of
-    its own class (``classes`` (n,), fixed for the cache's life), all rows in one pass.
+    its own class (``classes`` (n,); Semantic-ICP's E-step sets a row's class anew where it
+    asks the row for another one, :func:`_cached_class_candidates`), all rows in one pass.
 
     The candidates are kept as rows of the whole target (the classes' members), so one
     candidate scan (the inherited :meth:`query`) serves every class; only rows whose
@@ -784,17 +785,6 @@ class ClassNeighbourCache(NeighbourCache):
         grown = np.full(size, -1, np.int64)  # (-1: no class yet)
         grown[:len(self.classes)] = self.classes[:size]
         self.classes = grown
-
-    def query_classes(self, points: np.ndarray, rows: np.ndarray, classes: np.ndarray
-                      ) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`query` of the cache's ``rows``, each searching the tree of its entry in
-        ``classes`` (rows whose class changed are queried again)."""
-        rows = self._rows(points, rows)
-        changed = self.classes[rows] != classes
-        if changed.any():
-            self.classes[rows[changed]] = classes[changed]
-            self.reach[rows[changed]] = -1.0
-        return self.query(points, rows)
 
     def _refresh(self, points: np.ndarray, rows: np.ndarray) -> None:
         index, radius = self.index, 2.0 * self.d_max
@@ -853,6 +843,86 @@ class SemanticIndex:
     @property
     def n_classes(self) -> int:
         return self.probs.shape[1]
+
+
+def _cached_class_candidates(source_in_target: np.ndarray, source_probs: np.ndarray,
+                             index: SemanticIndex, d_max: float, order: np.ndarray,
+                             min_class_prob: float, caches: dict, rows: np.ndarray | None,
+                             geometric: NeighbourCache | None, first_class: tuple | None,
+                             rank_target: np.ndarray, rank_dist: np.ndarray) -> None:
+    """:func:`semantic_correspondences`'s class candidates (its arguments) from the class
+    caches, one kernel pass per rank (:func:`_kernels.class_rank_cached`): the rows whose
+    class-cache row is stale (moved beyond its reach, or queried for another class) are
+    queried again (:meth:`ClassNeighbourCache._refresh`) and passed again."""
+    n = len(source_in_target)
+    points = np.ascontiguousarray(source_in_target, dtype=float)
+    order = np.ascontiguousarray(order, dtype=np.int64)
+    cache_rows = np.arange(n) if rows is None else np.ascontiguousarray(rows, dtype=np.int64)
+    none_f, none_i, none_b = np.zeros(0), np.zeros(0, np.int64), np.zeros(0, bool)
+    if geometric is not None:
+        near = geometric.anchor, geometric.bound, geometric.reach, geometric.candidates
+    else:
+        near = np.zeros((0, 3)), none_f, none_f, np.zeros((0, 1), np.int64)
+    everyone = np.arange(n)
+    for rank in range(rank_target.shape[0]):
+        cache = caches.get(rank)
+        if cache is None:
+            cache = caches[rank] = ClassNeighbourCache(index, d_max)
+        cache._rows(points, cache_rows)  # (room for the rows)
+        first = first_class if rank == 0 and first_class is not None else (none_f, none_i,
+                                                                            none_b)
+        # (the cache's arrays, written in place by its refreshes)
+        asked = order, rank, source_probs, float(min_class_prob), *first, *near, index.points
+        cached = (index.labels, cache.anchor, cache.reach, cache.candidates, cache.classes,
+                  float(d_max), rank_target, rank_dist)
+        stale = _kernels.class_rank_cached(points, cache_rows, everyone, *asked, *cached)
+        if len(stale):
+            cache.classes[cache_rows[stale]] = order[stale, rank]
+            cache._refresh(points[stale], cache_rows[stale])
+            _kernels.class_rank_cached(points, cache_rows, stale, *asked, *cached)
+
+
+def _tree_class_candidates(source_in_target: np.ndarray, source_probs: np.ndarray,
+                           index: SemanticIndex, d_max: float, order: np.ndarray,
+                           min_class_prob: float, rows: np.ndarray | None,
+                           geometric: NeighbourCache | None, first_class: tuple | None,
+                           rank_target: np.ndarray, rank_dist: np.ndarray) -> None:
+    """:func:`semantic_correspondences`'s class candidates (its arguments) without class
+    caches: from the geometric cache's candidates where they decide them, from the class
+    trees elsewhere."""
+    n = len(source_in_target)
+    for rank in range(rank_target.shape[0]):
+        cls_of_point = np.ascontiguousarray(order[:, rank])
+        if rank == 0:  # every point
+            found, points, classes = np.arange(n), source_in_target, cls_of_point
+        else:  # where the class is probable enough
+            found = np.nonzero(source_probs[np.arange(n), cls_of_point] >= min_class_prob)[0]
+            points, classes = source_in_target[found], cls_of_point[found]
+        cache_rows = found if rows is None else rows[found]
+        dist = np.full(len(found), np.inf)
+        j = np.full(len(found), -1, dtype=np.int64)
+        ask = np.arange(len(found))  # the points the class trees answer
+        if rank == 0 and first_class is not None:
+            dist, j, unresolved = first_class  # (fresh arrays: filled in below)
+            ask = np.nonzero(unresolved)[0]
+        elif geometric is not None and len(found):
+            dist, j, unresolved = geometric.nearest_of_class(points, cache_rows, index.labels,
+                                                             classes)
+            ask = np.nonzero(unresolved)[0]
+        if len(ask):
+            starts, grouped = _kernels.group_rows(classes[ask], np.ones(len(ask), bool),
+                                                  index.n_classes)
+            for c, tree in index.trees.items():
+                part = ask[grouped[starts[c]:starts[c + 1]]]
+                if len(part) == 0:
+                    continue
+                d, q = tree.query(points[part], k=1,
+                                  distance_upper_bound=d_max, workers=_workers(len(part)))
+                ok = np.isfinite(d)
+                dist[part[ok]], j[part[ok]] = d[ok], index.members[c][q[ok]]
+        ok = np.isfinite(dist)
+        rank_target[rank, found[ok]] = j[ok]
+        rank_dist[rank, found[ok]] = dist[ok]
 
 
 def top_class_order(probs: np.ndarray, top: int) -> np.ndarray:
@@ -935,42 +1005,14 @@ def semantic_correspondences(source_in_target: np.ndarray, source_probs: np.ndar
     # each rank's class candidates, by row (-1: none within d_max, or not searched)
     rank_target = np.full((top, n), -1, dtype=np.int64)
     rank_dist = np.zeros((top, n))
-    for rank in range(top):
-        cls_of_point = np.ascontiguousarray(order[:, rank])
-        if rank == 0:  # every point
-            found, points, classes = np.arange(n), source_in_target, cls_of_point
-        else:  # where the class is probable enough
-            found = np.nonzero(source_probs[np.arange(n), cls_of_point] >= min_class_prob)[0]
-            points, classes = source_in_target[found], cls_of_point[found]
-        cache_rows = found if rows is None else rows[found]
-        dist = np.full(len(found), np.inf)
-        j = np.full(len(found), -1, dtype=np.int64)
-        ask = np.arange(len(found))  # the points the class trees (or their caches) answer
-        if rank == 0 and first_class is not None:
-            dist, j, unresolved = first_class  # (fresh arrays: filled in below)
-            ask = np.nonzero(unresolved)[0]
-        elif geometric is not None and len(found):
-            dist, j, unresolved = geometric.nearest_of_class(points, cache_rows, index.labels,
-                                                             classes)
-            ask = np.nonzero(unresolved)[0]
-        if caches is not None and len(ask):
-            cache = caches.get(rank)
-            if cache is None:
-                cache = caches[rank] = ClassNeighbourCache(index, d_max)
-            dist[ask], j[ask] = cache.query_classes(points[ask], cache_rows[ask], classes[ask])
-        elif len(ask):
-            starts, grouped = _kernels.group_rows(classes[ask], np.ones(len(ask), bool), c_src)
-            for c, tree in index.trees.items():
-                part = ask[grouped[starts[c]:starts[c + 1]]]
-                if len(part) == 0:
-                    continue
-                d, q = tree.query(points[part], k=1,
-                                  distance_upper_bound=d_max, workers=_workers(len(part)))
-                ok = np.isfinite(d)
-                dist[part[ok]], j[part[ok]] = d[ok], index.members[c][q[ok]]
-        ok = np.isfinite(dist)
-        rank_target[rank, found[ok]] = j[ok]
-        rank_dist[rank, found[ok]] = dist[ok]
+    if caches is not None:
+        _cached_class_candidates(source_in_target, source_probs, index, d_max, order,
+                                 min_class_prob, caches, rows, geometric, first_class,
+                                 rank_target, rank_dist)
+    else:
+        _tree_class_candidates(source_in_target, source_probs, index, d_max, order,
+                               min_class_prob, rows, geometric, first_class, rank_target,
+                               rank_dist)
     # the candidate list: the nearest neighbours, then each rank's classes in turn (a class
     # candidate that is the point's nearest neighbour is not counted twice); eq. (5): the
     # label agreement p(c|x_s) p(c|x_t) (with label noise) times the residual likelihood
