@@ -243,7 +243,6 @@ def test_class_neighbours_from_the_geometric_cache_are_exact(rng, d_max):
     assert min(resolved) > 0.6
 
 
-
 @pytest.mark.parametrize("posterior", [True, False])
 def test_cached_class_candidates_equal_the_class_trees(rng, posterior):
     """Semantic-ICP's class candidates from the class caches (one kernel pass per rank,

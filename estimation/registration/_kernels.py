@@ -570,7 +570,8 @@ def class_rank_cached(points, rows, which, order, rank, probs, min_class_prob, f
     the geometric cache's candidates where they decide it (as :func:`class_cached_nearest`;
     an empty ``g_reach``: no geometric cache), or from the class cache (``c_*``: its rows
     ``rows[m]``, ``c_classes`` the class each row was queried for), as
-    :func:`cached_nearest`. Returns the points whose class-cache row is stale (moved beyond
+    :func:`cached_nearest`; both caches' candidates are rows of ``target`` (its points,
+    ``labels`` their classes). Returns the points whose class-cache row is stale (moved beyond
     its reach, never queried, or queried for another class): query them again, then again
     here."""
     use_first = first_dist.shape[0] > 0
