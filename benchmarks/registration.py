@@ -129,12 +129,16 @@ def run_small_gicp(src, tgt, init, stages):
     return np.asarray(T), time.perf_counter() - t0
 
 
+# the simulator's maps are voxel lattices whose planes lie exactly on the lattice: no tilt
+# within a layer to model (plane_tilt 0; the default, 1 mrad, is a real room's map)
+SIMULATED_MAP = {"plane_tilt": 0.0}
 METHODS = {
-    "gicp-se3": lambda s, t, i, d: run_ours(s, t, i, d, False),
-    "semantic-icp": lambda s, t, i, d: run_ours(s, t, i, d, True),
+    "gicp-se3": lambda s, t, i, d: run_ours(s, t, i, d, False, **SIMULATED_MAP),
+    "semantic-icp": lambda s, t, i, d: run_ours(s, t, i, d, True, **SIMULATED_MAP),
     # the E-step as printed (unnormalised scores, class candidates only, sigma = d_max)
     "semantic-icp-weight": lambda s, t, i, d: run_ours(s, t, i, d, True,
-                                                       semantic_estep="weight"),
+                                                       semantic_estep="weight",
+                                                       **SIMULATED_MAP),
     "open3d-gicp": run_open3d,
     "open3d-gicp-c2": lambda s, t, i, d: run_open3d(s, t, i, d, cauchy=2.0),
     "small_gicp": run_small_gicp,

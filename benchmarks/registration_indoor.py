@@ -101,7 +101,7 @@ Usage::
         --source-points 0 --methods gicp-se3,open3d-gicp --trials 6 --map-phases 10
     python benchmarks/registration_indoor.py --rooms icl --maps centroids --source-points 0 \
         --methods gicp-se3,semantic-icp,open3d-gicp --trials 20 --first-trial 6 --map-phases 3
-    python benchmarks/registration_indoor.py --rooms tum,icl --maps centres --plane-tilt 0.001
+    python benchmarks/registration_indoor.py --rooms tum,icl --maps centres --plane-tilt 0
     python benchmarks/registration_indoor.py --rooms scan,tum,icl --maps centroids --classes 24 \
         --wrong-blocks 0.3 --methods gicp-se3,semantic-icp,open3d-gicp --trials 10
     python benchmarks/registration_indoor.py --rooms scan --maps centroids --map-error none
@@ -626,8 +626,8 @@ def main(argv=None) -> int:
                         help="also the NEES with the spread over K grid phases of the room's "
                         "own points added (GICP-SE(3), half setting; a diagnosis)")
     parser.add_argument("--plane-tilt", type=float, default=None, metavar="RAD",
-                        help="RegistrationConfig.plane_tilt for ours (a real room's lattice "
-                        "map: 0.001; default: off)")
+                        help="RegistrationConfig.plane_tilt for ours (default: its own, "
+                        "0.001, a real room's lattice map; 0: none)")
     parser.add_argument("--lattice-noise", default=None, metavar="M",
                         help="RegistrationConfig.lattice_noise for ours (m), or 'none' (the "
                         "sawtooth term of planes tilted against a lattice off; default: the "

@@ -269,8 +269,9 @@ def calibration_demo(out_dir: Path, quick: bool = False) -> dict:
     views = ("tv", "desk") if quick else ("tv", "desk", "shelf", "dining")
     written = simulate_room(room_dir, RoomConfig(seed=0, label_accuracy=0.9), views=views)
     robot_map = SemanticCloud.read_ply(written["robot_map"])
+    # (plane_tilt 0: the simulator's map is a voxel lattice whose planes lie exactly on it)
     config = RegistrationConfig(max_correspondence_distance=0.2,
-                                initial_correspondence_distance=1.0)
+                                initial_correspondence_distance=1.0, plane_tilt=0.0)
     rng = np.random.default_rng(0)
     rows = []
     jobs = [(view, method) for view in views for method in ("gicp", "semantic")]

@@ -86,9 +86,8 @@ def _common(parser, default_method: str) -> None:
     parser.add_argument("--plane-tilt", type=float, default=None, metavar="RAD",
                         help="on a voxel-lattice map (voxel centres, as an octree stores it), "
                         "the standard deviation (rad) of its planes' tilts against the "
-                        "lattice that the map lost: 0.001 for a real room's map; none "
-                        "(default): planes exactly parallel to the lattice, as the simulator "
-                        "builds them")
+                        "lattice that the map lost (0.001: a real room's map); 0: planes "
+                        "exactly parallel to the lattice, as the room simulator builds them")
     parser.add_argument("--estimator", metavar="NAME",
                         help="a registration estimator from `octofactor plugins` (overrides "
                         "--method; receives the clouds, --init and the class probabilities)")
@@ -118,7 +117,7 @@ def _load(path: str, method: str):
         raise FormatError(path, str(exc)) from None
 
 
-def _register(args, source, target, flip=None) -> dict:
+def _register(args, source, target, flip=None) -> tuple:
     import numpy as np
 
     from estimation.covariance import nees
@@ -200,7 +199,7 @@ def _register(args, source, target, flip=None) -> dict:
         err = pose_error(result.T, T_gt)
         out.update(d_se3=err.d_se3, t_err_m=err.t_err_m, r_err_rad=err.r_err_rad,
                    nees=float(nees(err.tangent, result.covariance)))
-    return out, result, None if plugin else lattice_note(out, config)
+    return out, result
 
 
 def registration_config(args):
@@ -297,26 +296,6 @@ def _summary(out: dict) -> str:
     return text
 
 
-def lattice_note(out: dict, config) -> str | None:
-    """A line for a run whose target is a voxel lattice and whose covariance took its planes
-    as exactly parallel to it (``plane_tilt`` not given): a real room's lattice map loses its
-    planes' small tilts, and that covariance is then too small (ICL-NUIM's office: mean NEES
-    117 against 12.1 with 0.001; docs/registration.md, "Lattice maps of real rooms")."""
-    diagnostic = out.get("covariance_diagnostic") or {}
-    pitch = diagnostic.get("quantisation_pitch_m")
-    if pitch is None or config.plane_tilt is not None:
-        return None
-    return (f"note: the target is a {pitch:g} m voxel lattice, and the covariance takes its "
-            "planes as exactly parallel to it (a simulated room); for a real room's map add "
-            "--plane-tilt 0.001 (docs/registration.md, \"Lattice maps of real rooms\")")
-
-
-def _print_summary(out: dict, note: str | None) -> None:
-    print(_summary(out))
-    if note:
-        print(note)
-
-
 def run_register(args) -> int:
     if _dump(args, "register"):
         return 0
@@ -326,9 +305,9 @@ def run_register(args) -> int:
     registration_options(args)  # before the clouds are read
     source = _load(args.source, args.method)
     target = _load(args.target, args.method)
-    out, _, note = _register(args, source, target)
+    out, _ = _register(args, source, target)
     _write(output, out)
-    _print_summary(out, note)
+    print(_summary(out))
     return 0 if out["converged"] else 1
 
 
@@ -363,7 +342,7 @@ def run_calibrate(args) -> int:
         flip = np.eye(4)
         flip["xyz".index(args.flip_axis), "xyz".index(args.flip_axis)] = -1.0
         headset = headset.transformed(flip)
-    out, result, note = _register(args, headset, robot_map, flip)
+    out, result = _register(args, headset, robot_map, flip)
     out["frames"] = "T = T_map_headset (headset -> robot map)"
     if args.left_handed:
         out["frames"] += f"; headset axis {args.flip_axis} negated first (left-handed input)"
@@ -382,7 +361,7 @@ def run_calibrate(args) -> int:
         pg.add_prior(0, gtsam.Pose3(), np.eye(6) * 1e-10)
         result.add_to_pose_graph(pg, 0, 1, kind="calibration")
         write_pose_graph(args.graph, pg)
-    _print_summary(out, note)
+    print(_summary(out))
     return 0 if out["converged"] else 1
 
 

@@ -6,7 +6,8 @@ quantisation term (one uniform offset per slab) was calibrated on the room simul
 planes are exactly parallel to the lattice. The real office's floor is tilted 2.1 mrad and
 stays within one layer: the map has lost that tilt, and the estimate turns with it
 (docs/registration.md, "Lattice maps of real rooms"). ``plane_tilt`` (1 mrad for a real
-room's map; off by default, for the simulator's exact planes) models it. A start whose half
+room's map, the default since the thirty-sixth round; 0 for the simulator's exact planes)
+models it. A start whose half
 room has almost no surface facing one direction is held along it by where the lattice's grid
 lies within the planes it does see (GICP's in-plane residuals): ``inplane_quantisation``
 models that grid's phase along each plane (thirty-second round; before it, a strict xfail
@@ -33,11 +34,11 @@ def office(centroid_room):
 
 @pytest.fixture(scope="module")
 def nees_by_option(office):
-    """NEES of the same N_TRIALS half-room starts with the tilt term (1 mrad), without it
-    (the default), and with it but without the in-plane term."""
+    """NEES of the same N_TRIALS half-room starts with the tilt term (1 mrad, the default),
+    without it, and with it but without the in-plane term."""
     out = {"tilt": [], "no tilt": [], "tilt, no in-plane": []}
-    options = {"tilt": {"plane_tilt": 1e-3}, "no tilt": {},
-               "tilt, no in-plane": {"plane_tilt": 1e-3, "inplane_quantisation": False}}
+    options = {"tilt": {}, "no tilt": {"plane_tilt": 0.0},
+               "tilt, no in-plane": {"inplane_quantisation": False}}
     for key, result, T_gt in half_room_trials(*office, N_TRIALS, options, 15000):
         assert result.converged, result.reason
         assert result.diagnostic.quantisation_pitch == pytest.approx(PITCH)

@@ -153,11 +153,13 @@ def test_bad_quantisation_option_is_rejected():
 
 def test_quantisation_can_be_given_or_switched_off():
     source, _, target, _, _ = make_pair(4, 1500, 0.005)
-    given = Registration(source, target, RegistrationConfig(quantisation=0.03)).run()
+    given = Registration(source, target, RegistrationConfig(quantisation=0.03,
+                                                            plane_tilt=0.0)).run()
     assert given.diagnostic.quantisation_pitch == 0.03
-    assert given.diagnostic.plane_tilt is None and RegistrationConfig().plane_tilt is None
-    tilted = Registration(source, target, RegistrationConfig(quantisation=0.03,
-                                                             plane_tilt=1e-3)).run()
+    assert given.diagnostic.plane_tilt is None
+    # a real room's map by default: its planes' tilts within a layer (1 mrad)
+    assert RegistrationConfig().plane_tilt == 1e-3
+    tilted = Registration(source, target, RegistrationConfig(quantisation=0.03)).run()
     assert tilted.diagnostic.plane_tilt == 1e-3
     np.testing.assert_array_equal(tilted.T, given.T)  # the covariance only
     assert np.trace(tilted.covariance) > np.trace(given.covariance)
@@ -180,10 +182,11 @@ def _mean_nees(errors, covs) -> float:
     return float(np.mean(nees(np.array(errors), np.array(covs))))
 
 
-def _room_view_trials(quantisation_pitch=None, **room):
+def _room_view_trials(quantisation_pitch=None, plane_tilt=0.0, **room):
     """(errors, covariances, model terms) of Semantic-ICP from each headset view of rooms
     100-107 (``RoomConfig(seed, **room)``) to the robot's map, from a random start 0.2 m /
-    5 deg around the truth; ``quantisation_pitch``: the pitch each result must report."""
+    5 deg around the truth; ``quantisation_pitch``: the pitch each result must report;
+    ``plane_tilt``: RegistrationConfig's (0: the simulator's planes lie on its lattice)."""
     from perception.simulation.room import (
         VIEWPOINTS,
         RoomConfig,
@@ -200,10 +203,12 @@ def _room_view_trials(quantisation_pitch=None, **room):
             source, T_gt = headset_cloud(built, view, cfg)
             rng = np.random.default_rng(seed * 10 + k)
             init = T_gt @ offset_about_centroid(rng, source.points.mean(axis=0), 0.2, 5.0)
-            # (the defaults: the simulator builds its rooms' planes exactly parallel to the
-            # map's lattice, no tilt within a layer to model, so plane_tilt stays off)
+            # (the simulator builds its rooms' planes exactly parallel to the map's
+            # lattice: no tilt within a layer to model, plane_tilt 0; the default, 1 mrad, is
+            # a real room's)
             result = Registration(source.points, target.points,
-                                  RegistrationConfig(max_correspondence_distance=0.2),
+                                  RegistrationConfig(max_correspondence_distance=0.2,
+                                                     plane_tilt=plane_tilt),
                                   source.probs, target.probs).run(init)
             assert result.converged, result.reason
             if quantisation_pitch is not None:
@@ -230,6 +235,11 @@ def test_room_views_covariance_is_consistent():
     # negative controls: the sandwich alone, and the reported covariance shrunk by 10
     assert not check_consistency(nees(errors, covs - model), dof=6).passed
     assert not check_consistency(nees(errors, covs * 0.1), dof=6).passed
+    # the default (a real room's 1 mrad tilts) on these exactly aligned planes: pessimistic,
+    # never over-confident (measured mean NEES about 2)
+    errors, covs, _ = _room_view_trials(plane_tilt=1e-3)
+    default = check_consistency(nees(errors, covs), dof=6)
+    assert default.mean < check.mean and default.mean < default.upper, default
 
 
 @pytest.mark.slow
