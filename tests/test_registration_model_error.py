@@ -236,7 +236,7 @@ def test_room_views_covariance_is_consistent():
     assert not check_consistency(nees(errors, covs - model), dof=6).passed
     assert not check_consistency(nees(errors, covs * 0.1), dof=6).passed
     # the default (a real room's 1 mrad tilts) on these exactly aligned planes: pessimistic,
-    # never over-confident (measured mean NEES about 2)
+    # never over-confident (measured mean NEES 2.03, against 5.46 with plane_tilt 0)
     errors, covs, _ = _room_view_trials(plane_tilt=1e-3)
     default = check_consistency(nees(errors, covs), dof=6)
     assert default.mean < check.mean and default.mean < default.upper, default
