@@ -86,8 +86,9 @@ def _common(parser, default_method: str) -> None:
     parser.add_argument("--plane-tilt", type=float, default=None, metavar="RAD",
                         help="on a voxel-lattice map (voxel centres, as an octree stores it), "
                         "the standard deviation (rad) of its planes' tilts against the "
-                        "lattice that the map lost (0.001: a real room's map); 0: planes "
-                        "exactly parallel to the lattice, as the room simulator builds them")
+                        "lattice that the map lost (default 0.001, a real room's map); 0: "
+                        "planes exactly parallel to the lattice, as the room simulator builds "
+                        "them")
     parser.add_argument("--estimator", metavar="NAME",
                         help="a registration estimator from `octofactor plugins` (overrides "
                         "--method; receives the clouds, --init and the class probabilities)")
