@@ -485,6 +485,33 @@ def _class_decided(best_c, best_cj, lower, d_max):
     return np.inf, -1, not lower > d_max
 
 
+@numba.njit(cache=True, inline="always")
+def _stale(points, m, anchor, reach, r):
+    """True where point m has moved beyond its row ``r``'s reach (or the row was never
+    queried: a negative reach)."""
+    return not _moved_squared(points, m, anchor, r) <= reach[r] * reach[r] or reach[r] < 0.0
+
+
+@numba.njit(cache=True, inline="always")
+def _cached_answer(points, m, candidates, r, target, d_max):
+    """(distance, row) of point m's nearest cached candidate of row ``r`` within d_max
+    (inf / -1 when none)."""
+    best, best_j, _, _ = _scan_candidates(points, m, candidates, r, target, candidates[r], -1)
+    if best <= d_max * d_max:
+        return np.sqrt(best), best_j
+    return np.inf, -1
+
+
+@numba.njit(cache=True, inline="always")
+def _class_from_candidates(points, m, anchor, bound, candidates, r, target, labels, c, d_max):
+    """(distance, row, unresolved) of point m's nearest target point labelled ``c`` within
+    d_max, from row ``r``'s geometric candidates where they decide it
+    (:func:`class_cached_nearest`)."""
+    _, _, best_c, best_cj = _scan_candidates(points, m, candidates, r, target, labels, c)
+    return _class_decided(best_c, best_cj,
+                          bound[r] - np.sqrt(_moved_squared(points, m, anchor, r)), d_max)
+
+
 @numba.njit(cache=True)
 def cached_nearest(points, rows, anchor, reach, candidates, target, d_max):
     """Nearest cached candidate of each point within d_max (inf / -1 when none), and the
@@ -494,12 +521,10 @@ def cached_nearest(points, rows, anchor, reach, candidates, target, d_max):
     dist, idx, stale = _answers(n)
     for m in range(n):
         r = rows[m]
-        if not _moved_squared(points, m, anchor, r) <= reach[r] * reach[r] or reach[r] < 0.0:
+        if _stale(points, m, anchor, reach, r):
             stale[m] = True
             continue
-        best, best_j, _, _ = _scan_candidates(points, m, candidates, r, target, rows, -1)
-        if best <= d_max * d_max:
-            dist[m], idx[m] = np.sqrt(best), best_j
+        dist[m], idx[m] = _cached_answer(points, m, candidates, r, target, d_max)
     return dist, idx, stale
 
 
@@ -548,10 +573,8 @@ def class_cached_nearest(points, rows, anchor, bound, reach, candidates, target,
         if reach[r] < 0.0:  # never queried
             unresolved[m] = True
             continue
-        _, _, best_c, best_cj = _scan_candidates(points, m, candidates, r, target, labels,
-                                                 want[m])
-        dist[m], idx[m], unresolved[m] = _class_decided(
-            best_c, best_cj, bound[r] - np.sqrt(_moved_squared(points, m, anchor, r)), d_max)
+        dist[m], idx[m], unresolved[m] = _class_from_candidates(
+            points, m, anchor, bound, candidates, r, target, labels, want[m], d_max)
     return dist, idx, unresolved
 
 
@@ -587,23 +610,16 @@ def class_rank_cached(points, rows, which, order, rank, probs, min_class_prob, f
         if rank == 0 and use_first:
             dist, idx, unresolved = first_dist[m], first_idx[m], first_unresolved[m]
         elif use_geometric and g_reach[r] >= 0.0:
-            _, _, best_c, best_cj = _scan_candidates(points, m, g_candidates, r, target,
-                                                     labels, c)
-            dist, idx, unresolved = _class_decided(
-                best_c, best_cj, g_bound[r] - np.sqrt(_moved_squared(points, m, g_anchor, r)),
-                d_max)
+            dist, idx, unresolved = _class_from_candidates(
+                points, m, g_anchor, g_bound, g_candidates, r, target, labels, c, d_max)
         else:
             dist, idx, unresolved = np.inf, -1, True
         if unresolved:
-            if (c_classes[r] != c or c_reach[r] < 0.0
-                    or not _moved_squared(points, m, c_anchor, r) <= c_reach[r] * c_reach[r]):
+            if c_classes[r] != c or _stale(points, m, c_anchor, c_reach, r):
                 stale[n_stale] = m
                 n_stale += 1
                 continue
-            best, best_j, _, _ = _scan_candidates(points, m, c_candidates, r, target, rows, -1)
-            dist, idx = np.inf, -1
-            if best <= d_max * d_max:
-                dist, idx = np.sqrt(best), best_j
+            dist, idx = _cached_answer(points, m, c_candidates, r, target, d_max)
         if idx >= 0:
             rank_target[rank, m], rank_dist[rank, m] = idx, dist
     return stale[:n_stale]
