@@ -268,11 +268,8 @@ def _summary(out: dict) -> str:
                  f"r_err={out['r_err_rad']:.4f} rad")
     diagnostic = out.get("covariance_diagnostic")
     if diagnostic and not diagnostic["covariance_trusted"]:
-        from estimation.registration.gicp import (
-            INSIDE_TRUSTED_COVERAGE,
-            RegistrationConfig,
-            source_inside_target,
-        )
+        from estimation.registration import RegistrationConfig
+        from estimation.registration.gicp import INSIDE_TRUSTED_COVERAGE, source_inside_target
 
         overlap = diagnostic.get("overlap")
         gap = diagnostic.get("direction_gap")

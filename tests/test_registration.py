@@ -500,7 +500,7 @@ def test_cluster_sums_equal_a_grouping_by_block(rng, size):
     """Values summed per cubic block: the table over the blocks' box (0.4 m blocks over a
     2 m cloud) and the sort where the box has more blocks than four per point (0.05 and
     1e-4 m), against a plain grouping of the blocks' keys."""
-    from estimation.registration.gicp import cluster_sums
+    from estimation.registration.covariance_terms import cluster_sums
 
     points = rng.uniform(-1, 1, (5000, 3))
     values = rng.normal(size=(5000, 6))
@@ -514,7 +514,7 @@ def test_cluster_sums_equal_a_grouping_by_block(rng, size):
 
 
 def test_shift_sensitivity_is_w_jt_ut(rng):
-    from estimation.registration.gicp import SolutionTerms
+    from estimation.registration.result import SolutionTerms
 
     m = 50
     J, Ut = rng.normal(size=(m, 3, 6)), rng.normal(size=(m, 3, 3))

@@ -1,12 +1,12 @@
 """The cell-crossing term of same-voxel matching (RegistrationConfig.crossing_bias).
 
-Checked: the model's mean residual (:func:`gicp.crossing_bias`) equals a simulation of the
-matching it describes (a layer of points voxelised at a grid phase, noisy source points
-compared with the centroid of the cell they land in); its scale (:func:`gicp.crossing_bias_rms`)
-grows with the noise and scales with the pitch; on the real ICL-NUIM office against its 3 cm
-centroid map the term brings the mean NEES from far above the chi-square band to near it
-(switching it off fails; the reported covariance shrunk ten-fold, the negative control, fails);
-bad values are refused.
+Checked: the model's mean residual (:func:`covariance_terms.crossing_bias`) equals a
+simulation of the matching it describes (a layer of points voxelised at a grid phase, noisy
+source points compared with the centroid of the cell they land in); its scale
+(:func:`covariance_terms.crossing_bias_rms`) grows with the noise and scales with the pitch;
+on the real ICL-NUIM office against its 3 cm centroid map the term brings the mean NEES from
+far above the chi-square band to near it (switching it off fails; the reported covariance
+shrunk ten-fold, the negative control, fails); bad values are refused.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from benchmarks.registration import D_FINAL, OFFSETS, register_ours
 from benchmarks.registration_indoor import half_room_source
 from estimation.covariance import nees
 from estimation.errors import EstimationError
-from estimation.registration import RegistrationConfig, gicp, pose_error
+from estimation.registration import RegistrationConfig, covariance_terms, pose_error
 from estimation.registration.metrics import offset_about_centroid
 
 
@@ -29,7 +29,7 @@ def simulated_bias(rng, sigma, tau, pitch, phase, n=400_000):
     layer = rng.normal(scale=tau, size=n)
     cell = np.floor((layer - phase) / pitch + 0.5).astype(int)
     ks, counts = np.unique(cell, return_counts=True)
-    keep = counts >= gicp.CROSSING_OCCUPIED * n
+    keep = counts >= covariance_terms.CROSSING_OCCUPIED * n
     ks = ks[keep]
     centroid = np.array([layer[cell == k].mean() for k in ks])
     source = rng.normal(scale=tau, size=n) + rng.normal(scale=sigma, size=n)
@@ -41,7 +41,7 @@ def simulated_bias(rng, sigma, tau, pitch, phase, n=400_000):
                                                (0.003, 0.001, 0.0135), (0.008, 0.003, 0.02)])
 def test_the_crossing_bias_is_what_the_matching_does(rng, sigma, tau, phase):
     pitch = 0.03
-    model = float(gicp.crossing_bias(sigma, tau, pitch, phase))
+    model = float(covariance_terms.crossing_bias(sigma, tau, pitch, phase))
     simulated = simulated_bias(rng, sigma, tau, pitch, phase)
     # simulation noise: sqrt(sigma^2 + tau^2) / sqrt(n) ~ 0.01 mm; biases 0.1-1 mm
     assert abs(model) > 1e-4
@@ -52,16 +52,16 @@ def test_without_noise_only_the_layers_sparse_tail_is_left():
     # (a cell with less than CROSSING_OCCUPIED of the layer holds no centroid of its own:
     # its few points are compared with the next cell's, as a source point there would be)
     phases = np.linspace(0.0, 0.03, 16)
-    noiseless = np.abs(gicp.crossing_bias(1e-9, 0.003, 0.03, phases)).max()
-    assert noiseless < 0.2 * gicp.crossing_bias_rms(0.005, 0.03)  # measured 0.14
-    assert gicp.crossing_bias_rms(0.0, 0.03) == 0.0
+    noiseless = np.abs(covariance_terms.crossing_bias(1e-9, 0.003, 0.03, phases)).max()
+    assert noiseless < 0.2 * covariance_terms.crossing_bias_rms(0.005, 0.03)  # measured 0.14
+    assert covariance_terms.crossing_bias_rms(0.0, 0.03) == 0.0
 
 
 def test_the_crossing_scale_grows_with_the_noise_and_scales_with_the_pitch():
-    rms = [gicp.crossing_bias_rms(s, 0.03) for s in (0.002, 0.003, 0.005, 0.008)]
+    rms = [covariance_terms.crossing_bias_rms(s, 0.03) for s in (0.002, 0.003, 0.005, 0.008)]
     assert np.all(np.diff(rms) > 0), rms
     assert rms[2] == pytest.approx(0.57e-3, rel=0.05)  # docs: 0.56 mm at 5 mm on 3 cm
-    assert gicp.crossing_bias_rms(0.01, 0.06) == pytest.approx(2 * rms[2], rel=1e-3)
+    assert covariance_terms.crossing_bias_rms(0.01, 0.06) == pytest.approx(2 * rms[2], rel=1e-3)
 
 
 def test_bad_crossing_bias_values_are_refused():

@@ -20,13 +20,13 @@ from test_registration import make_pair
 from estimation.covariance import check_consistency, nees
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, pose_error
-from estimation.registration.factors import gicp_terms
-from estimation.registration.gicp import (
+from estimation.registration.covariance_terms import (
     inplane_information,
     plane_groups,
     quantisation_information,
     tilted_groups,
 )
+from estimation.registration.factors import gicp_terms
 from estimation.registration.metrics import offset_about_centroid
 
 

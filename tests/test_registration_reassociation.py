@@ -14,12 +14,8 @@ from test_registration_model_error import voxel_map_pair
 from estimation.covariance import ConsistencyCheck, check_consistency, nees
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
-from estimation.registration.gicp import (
-    CAUCHY_TUNING,
-    REASSOCIATION_FLOOR,
-    bread_within,
-    loewner_max,
-)
+from estimation.registration.covariance_terms import bread_within, loewner_max
+from estimation.registration.gicp import CAUCHY_TUNING, REASSOCIATION_FLOOR
 
 
 def _solution(reg: Registration, result):

@@ -16,7 +16,7 @@ import pytest
 
 from estimation.errors import EstimationError
 from estimation.registration import RegistrationConfig
-from estimation.registration.gicp import (
+from estimation.registration.covariance_terms import (
     _layer_regression,
     quantisation_information,
     sawtooth_information,

@@ -17,7 +17,7 @@ from test_registration import make_pair
 from estimation.covariance import check_consistency, nees
 from estimation.errors import EstimationError
 from estimation.registration import Registration, RegistrationConfig, pose_error
-from estimation.registration.gicp import systematic_covariance
+from estimation.registration.covariance_terms import systematic_covariance
 from estimation.registration.metrics import offset_about_centroid
 from pipelines.cli import main
 

@@ -13,7 +13,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .gicp import Registration, RegistrationConfig, RegistrationResult
+from .config import RegistrationConfig
+from .gicp import Registration
+from .result import RegistrationResult
 
 
 def gicp_se3(source: np.ndarray, target: np.ndarray, init=None,
