@@ -12,13 +12,13 @@ import pytest
 from benchmarks.registration import register_ours
 from benchmarks.registration_indoor import D_FINAL, OFFSETS, SOURCE_POINTS, half_room_source
 from estimation.registration import Registration, RegistrationConfig, gicp, pose_error
-from estimation.registration.gicp import (
+from estimation.registration.metrics import offset_about_centroid
+from estimation.registration.sampling import (
     NORMAL_BINS,
     covariance_normals,
     normal_bins,
     normal_space_rows,
 )
-from estimation.registration.metrics import offset_about_centroid
 
 
 def unit(v: np.ndarray) -> np.ndarray:
