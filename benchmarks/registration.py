@@ -27,7 +27,7 @@ initial guess, so a cell holds 4 independent data sets per room seed; ``--seeds`
 independent rooms (depth noise, labels, ground-truth offsets).
 
 Success: t_err < 0.10 m and r_err < 5 deg (the simulated map itself disagrees with the
-ground truth by a few cm, see docs/registration.md). Times are medians, per registration,
+ground truth by a few cm, see docs/registration_notes.md). Times are medians, per registration,
 including per-point covariance estimation for every method; ratios are against Open3D
 measured in the same run (the machine is shared: the load average is printed).
 

@@ -86,7 +86,7 @@ and the covariance of those estimates about their mean, the spread the grid's ph
 causes, is added to the reported covariance: the printed mean NEES with it says how much
 of the gap that term would close. It needs the points the map was made from, which a
 registration of a given map does not have: a measurement, not an estimator
-(docs/registration.md, "Where the room gap comes from"). The K maps push the room map's grid
+(docs/registration_notes.md, "Where the room gap comes from"). The K maps push the room map's grid
 out of ``voxel_grid``'s cache, so times in such a run include finding it again.
 
 Usage::
@@ -665,7 +665,7 @@ def main(argv=None) -> int:
     parser.add_argument("--coarse", default="normals", choices=("normals", "strided"),
                         help="ours' coarse subset: half of it over the surface normals' "
                         "directions (default), or all of it evenly strided (before the "
-                        "twenty-first round; docs/registration.md, 'Normal-space sampling "
+                        "twenty-first round; docs/registration_notes.md, 'Normal-space sampling "
                         "of the coarse subset')")
     args = parser.parse_args(argv)
     ours = {} if args.plane_tilt is None else {"plane_tilt": args.plane_tilt}

@@ -100,7 +100,7 @@ def strided_coarse_subset(monkeypatch):
     use particular starts of the rooms as examples of a later stage's case (a wrong basin, a
     slow slide): the strided subset took those starts there, and half of the subset over the
     normals' directions changes which starts those are (test_registration_coarse_sampling.py;
-    docs/registration.md, "Normal-space sampling of the coarse subset")."""
+    docs/registration_notes.md, "Normal-space sampling of the coarse subset")."""
     from estimation.registration import gicp
 
     monkeypatch.setattr(gicp, "NORMAL_SPACE_SAMPLING", False)

@@ -1,6 +1,6 @@
 """``crossed_bootstrap_interval``: the interval of a mean NEES over runs that share their map's
 grid phase and their trial's half (benchmarks/registration_indoor.py ``--map-phases``;
-docs/registration.md, "How many draws a cell holds").
+docs/registration_notes.md, "How many draws a cell holds").
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """``nees_about_common``: the mean NEES of runs that share an error, split into the common
 error and the runs' variation about it (benchmarks/registration_indoor.py and
-registration_real.py print it; docs/registration.md, "One map, one draw of its error").
+registration_real.py print it; docs/registration_notes.md, "One map, one draw of its error").
 """
 from __future__ import annotations
 

@@ -24,7 +24,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 # the README first, then the quick starts of docs/ (their blocks use the README's outputs)
 DOCUMENTS = ("README.md", "docs/octree.md", "docs/vanishing_points.md", "docs/evaluation.md",
-             "docs/plugins.md")
+             "docs/plugins.md", "docs/registration.md")
 LANGUAGES = {"sh": "sh", "bash": "sh", "python": "python"}
 FENCE = re.compile(r"^```(\w*)\s*$")
 NOT_RUN = re.compile(r"<!--\s*not run:\s*(.+?)\s*-->")

@@ -2,7 +2,7 @@
 
 An evenly strided subset of a room is mostly its dominant surfaces; the coarse stage can slide
 along them. Half of the subset is spread evenly over the directions of the surface normals
-instead (Rusinkiewicz and Levoy 2001), docs/registration.md "Normal-space sampling".
+instead (Rusinkiewicz and Levoy 2001), docs/registration_notes.md "Normal-space sampling".
 """
 from __future__ import annotations
 

@@ -4,7 +4,7 @@ twenty-fourth round).
 Along a weakly held direction ICP creeps: each step's correspondences lag the pose, and the
 steps shrink by a ratio rho near 1. A step below ``tolerance`` then still leaves about
 ``step * rho / (1 - rho)`` to go. ``gicp.CONVERGE_ON_REMAINDER`` lets such a step end the
-final stage only where that remainder is below ``tolerance`` too (docs/registration.md, "The
+final stage only where that remainder is below ``tolerance`` too (docs/registration_notes.md, "The
 creep's remainder").
 
 The case: ICL-NUIM's office fused from frames 50-99 (another view than the tests' other

@@ -160,7 +160,7 @@ def test_the_boundary_gate_keeps_an_overlapping_part_off_the_maps_edge(room):
 def test_covariance_is_consistent_on_a_real_room_against_its_voxel_map(forward):
     # measured 4.84 (median 4.17), band [4.82, 7.30]; the map term unscaled by the map's
     # thickness gave 4.4, no map term 8.2, before same-voxel matching and the crossing term
-    # 9.6 (docs/registration.md)
+    # 9.6 (docs/registration_notes.md)
     values = np.array([nees(err.tangent, r.covariance) for r, err in forward])
     assert not check_consistency(np.array(
         [nees(err.tangent, 0.1 * r.covariance) for r, err in forward]), dof=6).passed
@@ -170,7 +170,7 @@ def test_covariance_is_consistent_on_a_real_room_against_its_voxel_map(forward):
 
 @pytest.mark.slow
 def test_the_gap_is_where_the_voxel_grid_cuts_the_room(room, forward):
-    # the diagnosis of the room gap (docs/registration.md, "Where the room gap comes
+    # the diagnosis of the room gap (docs/registration_notes.md, "Where the room gap comes
     # from"): the room's own points voxelised again at other grid phases move the estimate
     # by about its error; that spread, added to the reported covariance, closes most of the
     # gap (measured on the benchmark's rooms: TUM 11.9 -> 7.3, ICL-NUIM 460 -> 12.9)
@@ -347,7 +347,7 @@ def test_benchmark_refuses_a_bad_option(argv, capsys):
 @pytest.mark.parametrize("coarse, sampling", [("strided", False), ("normals", True)])
 def test_benchmark_coarse_option_sets_the_subset(coarse, sampling, monkeypatch):
     """``--coarse strided``: ours with the evenly strided coarse subset (the A/B of
-    docs/registration.md, "Normal-space sampling of the coarse subset")."""
+    docs/registration_notes.md, "Normal-space sampling of the coarse subset")."""
     import benchmarks.registration_indoor as bench
     from estimation.registration import gicp
 

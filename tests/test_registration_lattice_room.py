@@ -5,7 +5,7 @@ lattice within a few mrad, so each is stored as one flat layer of voxel centres.
 quantisation term (one uniform offset per slab) was calibrated on the room simulator, whose
 planes are exactly parallel to the lattice. The real office's floor is tilted 2.1 mrad and
 stays within one layer: the map has lost that tilt, and the estimate turns with it
-(docs/registration.md, "Lattice maps of real rooms"). ``plane_tilt`` (1 mrad for a real
+(docs/registration_notes.md, "Lattice maps of real rooms"). ``plane_tilt`` (1 mrad for a real
 room's map, the default since the thirty-sixth round; 0 for the simulator's exact planes)
 models it. A start whose half
 room has almost no surface facing one direction is held along it by where the lattice's grid

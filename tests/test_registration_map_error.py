@@ -142,7 +142,7 @@ def test_a_dense_source_is_consistent_only_with_the_term(room):
 def test_the_term_adds_to_the_rest_and_scales_with_its_variance(room):
     # the map's error is independent of the point noise and the crossings, so its covariance
     # adds to theirs (twenty-sixth round; the Loewner maximum before left the raw halves of
-    # the real rooms pessimistic, docs/registration.md, "The map term added"): the reported
+    # the real rooms pessimistic, docs/registration_notes.md, "The map term added"): the reported
     # covariance is then affine in the term's variance, which a maximum is not
     points, labels, target = room
     source, _, init, d0 = benchmark_start(points, labels, 2)

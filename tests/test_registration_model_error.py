@@ -4,7 +4,7 @@ The i.i.d. point-noise sandwich (tests/test_registration_covariance.py) says not
 errors shared by whole surfaces. A robot's octree map stores surfaces as voxel centres, off
 the true surface by up to half a voxel along the normal, the same offset for a whole plane
 parallel to the lattice; the registration error is then systematic and the sandwich alone
-was 100-1000x over-confident on the demo room (docs/registration.md). These tests check the
+was 100-1000x over-confident on the demo room (docs/registration_notes.md). These tests check the
 quantisation term (:func:`quantisation_information`) piece by piece and in Monte Carlo runs
 on the room simulator, with controls that must fail.
 """

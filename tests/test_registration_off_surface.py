@@ -4,7 +4,7 @@ In the right basin a source point either lies on a surface the target sampled to
 what the target covers (a partial overlap). In another basin part of the source lies near the
 target's surfaces but beside them. `CovarianceDiagnostic.off_surface` is the share, among the
 source's points within two of the overlap's radii of a target point, of those not within one
-(`Registration.coverage`). Measured (issue 14, fourteenth round; docs/registration.md, "Off
+(`Registration.coverage`). Measured (issue 14, fourteenth round; docs/registration_notes.md, "Off
 the surfaces"): right basins 0-0.086 where no other rule flags them (real rooms' halves, also
 at 3 cm point noise, and parts; the real scan splits 0.033-0.041; KITTI at 0.1-0.5 m voxels
 0.064-0.084); converged wrong basins of the rooms 0.073-0.46, those the direction gap missed

@@ -7,7 +7,7 @@ sheets of centroids) biases the estimate, and the covariance misses it: on the r
 office the right basins' mean NEES was about 500. From the nearest-neighbour fixed point on,
 the iterations go on with the cells, and the estimate is that one direction's; the direction
 gap (the test for another basin) is measured at the nearest-neighbour fixed point, where both
-directions match alike. Measured (docs/registration.md, "Partial overlaps matched by cell").
+directions match alike. Measured (docs/registration_notes.md, "Partial overlaps matched by cell").
 """
 from __future__ import annotations
 

@@ -175,7 +175,7 @@ def test_rematched_bread_covers_the_flat_directions_of_real_half_rooms(centroid_
     # to a narrow slice of the room have directions the matched cost barely constrains; the
     # re-matched bread finds them (eigenvalues 0.12-0.19 relative to A) and the floor of 0.25
     # held them back. Measured mean NEES 6.60 with the floor at 0.1, 8.49 at 0.25 (band
-    # [4.82, 7.30]); docs/registration.md, "The re-matched bread's floor"
+    # [4.82, 7.30]); docs/registration_notes.md, "The re-matched bread's floor"
     def check() -> ConsistencyCheck:
         errors, covariances = [], []
         for result, T_gt in icl_half_room_runs(centroid_room, range(30)):

@@ -5,7 +5,7 @@ the plane by a sawtooth of the plane's layer coordinate, shifted by the grid's u
 phase. Densely and evenly sampled along its slope the sawtooth averages out; sampled along
 a few scan lines (a single laser scan's lattice map) it does not, and the registration
 error it leaves was not in the covariance: OctoMap's scan.dat as a 3 cm lattice map, mean
-NEES 44 over 8 half-scan starts, every run trusted (docs/registration.md, "A single laser
+NEES 44 over 8 half-scan starts, every run trusted (docs/registration_notes.md, "A single laser
 scan's map"). These tests check the term against a Monte Carlo over the grid's phase, with
 and without the surface noise that dithers the staircase.
 """

@@ -4,7 +4,7 @@ OctoMap's ``scan.dat`` (one real 3-D laser scan of a corridor, no fusion) within
 sensor, half of it against the whole scan's 3 cm map, 5 mm noise, 10 % wrong labels: issue
 14's held-out protocol on a room of another kind than the two RGB-D rooms the map terms were
 chosen on. A voxel of this map holds about 2 points (the RGB-D rooms' about 10), and its
-surfaces are 2-6 mm thick (theirs 13-17 mm as 3 cm centroid maps) (docs/registration.md,
+surfaces are 2-6 mm thick (theirs 13-17 mm as 3 cm centroid maps) (docs/registration_notes.md,
 "A single laser scan's map").
 
 Centroid map: the point-noise covariance alone is about right here (mean NEES 4.4 over 20

@@ -6,7 +6,7 @@ labels), starts 19 and 22 end 0.16 and 0.27 m off where GICP-SE(3) ends within 3
 are flagged untrusted. Such a run starts again with the annealing stages matched
 geometrically and returns that result where it is trusted. Checked: the two starts are
 rescued (switching the rescue off fails), a trusted start is left exactly as it was, and
-GICP-SE(3) is never started twice (docs/registration.md, "A second start for an untrusted
+GICP-SE(3) is never started twice (docs/registration_notes.md, "A second start for an untrusted
 Semantic-ICP"). A second start that does not converge within ``RESCUE_FINAL_ITERATIONS``
 final iterations stops there: it could not be trusted ("The second start's final stage").
 """

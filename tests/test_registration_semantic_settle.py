@@ -3,8 +3,8 @@
 The annealing stages use the paper's scores, which let the labels pull a wide offset in; they
 also let a wrong label pull towards the nearest surface of its class up to the stage's d_max
 away. Once the last annealing stage has converged it goes on with the posterior E-step, so the
-final stage starts from the posterior's fixed point (docs/registration.md, "Semantic-ICP's last
-annealing stage settles with the posterior").
+final stage starts from the posterior's fixed point (docs/registration_notes.md, "Semantic-ICP's
+last annealing stage settles with the posterior").
 """
 from __future__ import annotations
 

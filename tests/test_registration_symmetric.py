@@ -1,7 +1,7 @@
 """The symmetric registration (``RegistrationConfig.symmetric``): the midpoint of both directions.
 
 Nearest-neighbour matching is not symmetric, and on real scans the estimate moves when source
-and target swap roles (docs/registration.md, "Symmetric registration"). Off a voxel lattice
+and target swap roles (docs/registration_notes.md, "Symmetric registration"). Off a voxel lattice
 the target is also registered to the source (one Newton step from the forward solution with
 the re-matched bread), the midpoint is reported, and its covariance is the sandwich of the two
 stacked estimating equations. These tests check the pieces; the calibration itself is checked

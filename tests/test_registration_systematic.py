@@ -2,7 +2,7 @@
 
 Two sensors' calibration or depth bias moves every source point alike: no residual shows it,
 and the pose absorbs it. It is an input, added to the covariance's translation block in the
-body frame (docs/registration.md, "Errors the data cannot show")."""
+body frame (docs/registration_notes.md, "Errors the data cannot show")."""
 from __future__ import annotations
 
 import json

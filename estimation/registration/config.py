@@ -1,7 +1,7 @@
 """The settings of GICP-SE(3) and Semantic-ICP (:class:`RegistrationConfig`).
 
 Every field has a default a user of the field would pick; the docstring says what each one
-does and where its value was measured (docs/registration.md). The tunables of the loop
+does and where its value was measured (docs/registration_notes.md). The tunables of the loop
 itself (when caches start, how the final stage creeps) are module constants of
 :mod:`.gicp`, next to the code they steer.
 """
@@ -41,10 +41,10 @@ class RegistrationConfig:
         (1.4826 x the median whitened residual norm); on a lattice (an octree map, whose
         few-cm quantisation biases the residuals) ``cauchy_alpha``. "fixed":
         ``cauchy_alpha`` always. (Real scan splits: 0.77x Open3D's error with "auto",
-        1.12x with alpha 2; docs/registration.md)
+        1.12x with alpha 2; docs/registration_notes.md)
     k_neighbours, epsilon : per-point covariance estimation (eigenvalues -> (epsilon, 1, 1))
     max_iterations : outer correspondence/EM iterations at the final correspondence distance
-        (150: a start that slides slowly along a room needs 90-130; docs/registration.md)
+        (150: a start that slides slowly along a room needs 90-130; docs/registration_notes.md)
         (the stages before it are capped by ``stage_iterations`` each, so a multi-stage
         schedule cannot starve the stage whose convergence is tested)
     inner_iterations : GTSAM optimiser iterations per outer iteration
@@ -73,7 +73,7 @@ class RegistrationConfig:
         ``RESCUE_FINAL_ITERATIONS``). The class-restricted objective has minima of its
         own at a wide d_max: the real office's 15k-point halves, 20 starts, ended 0.16-0.27 m
         off in 2 of 20 small and 11 of 20 wide ones (all flagged untrusted), 0 and 8 with
-        the rescue (GICP-SE(3) 0 and 10); docs/registration.md, "A second start for an
+        the rescue (GICP-SE(3) 0 and 10); docs/registration_notes.md, "A second start for an
         untrusted Semantic-ICP". False: one run
     label_noise : the posterior E-step's chance that a label is wrong whatever its
         probabilities say (:func:`.correspondences.semantic_correspondences`): "auto"
@@ -81,7 +81,8 @@ class RegistrationConfig:
         differs from their geometric nearest neighbour's; a number = fixed; 0 = labels as
         given (the earlier E-step: with one-hot labels a wrongly labelled point put its whole
         weight on the nearest point of its wrong class, up to d_max away: real RGB-D rooms
-        with 10 % wrong labels, error 1.26x Open3D GICP and mean NEES 13; docs/registration.md)
+        with 10 % wrong labels, error 1.26x Open3D GICP and mean NEES 13;
+        docs/registration_notes.md)
     top_classes : classes per source point that get a correspondence in Semantic-ICP
     min_inliers : fewer correspondences than this -> converged=False
     covariance : "sandwich" (cluster-robust, calibrated), "hessian" (raw inverse Hessian)
@@ -105,7 +106,7 @@ class RegistrationConfig:
         it (else every mean would fall back to its sample), else None. Nearest neighbours
         on a dense grid of centres are off by up to half a voxel along the normal, which put
         every method 3-6 cm off the ground truth at 50k points in the room benchmark (about
-        1 cm with the means; docs/registration.md)
+        1 cm with the means; docs/registration_notes.md)
     surface_min_points : fewer points than this within ``surface_radius`` -> the sample itself
         (sparse clouds are left unchanged)
     quantisation : pitch (m) of a voxel lattice under either cloud, whose quantisation
@@ -131,7 +132,7 @@ class RegistrationConfig:
         deviations (of the fixed-association sandwich) along each axis
         (:meth:`Registration.reassociation_hessian`): nearest neighbours follow the noise, so
         the estimate responds less to the data than the fixed-association Hessian says
-        (3 cm point noise: mean NEES 10.6 -> 7.0; docs/registration.md). Used where no
+        (3 cm point noise: mean NEES 10.6 -> 7.0; docs/registration_notes.md). Used where no
         quantisation term is (on a voxel lattice the matches jump between lattice sites,
         which that term covers). None = the fixed-association Hessian (the earlier
         covariance)
@@ -184,7 +185,7 @@ class RegistrationConfig:
         errors 13-17 mm along the vertical with a reported 0.5-0.9 mm). Measured, 10 halves
         each (seeds 10-19): mean NEES 453 -> 117 on the office (12.1 with ``plane_tilt``
         1e-3 for its floor's lost tilt), TUM 7.74 -> 5.03, the scan 7.53 -> 6.66; the
-        simulator's room views 7.04 -> 5.75 (16 views) (docs/registration.md, "A lattice
+        simulator's room views 7.04 -> 5.75 (16 views) (docs/registration_notes.md, "A lattice
         plane's in-plane phase"). False = the normal offsets only (the earlier covariance)
     boundary_gate : tau, in units of the target's median distance to its k-th neighbour
         (:meth:`Registration.boundary_radius`). At the final correspondence distance each
@@ -195,7 +196,7 @@ class RegistrationConfig:
         into the overlap (Turk & Levoy's rejection of pairs on a mesh boundary, for point
         clouds; the tangent plane is the plane-regularised target covariance's). Real RGB-D
         room, a part registered to the 3 cm map of an overlapping part: median error 25 ->
-        6 mm (Open3D GICP 109 mm); docs/registration.md. None = every pair within d_max at
+        6 mm (Open3D GICP 109 mm); docs/registration_notes.md. None = every pair within d_max at
         full weight (the earlier estimator). Not on a voxel lattice (see ``quantisation``)
     voxel_matching : where the source lies inside a voxel-centroid map (a map whose grid
         :func:`.correspondences.voxel_grid` recovers from the map itself: Open3D's
@@ -206,7 +207,7 @@ class RegistrationConfig:
         parallel to it cuts is stored as two sheets of centroids, one per column whatever
         their point counts: the nearest centroid sees their plain mean, the cell's own
         centroid the mean of the same points. ICL-NUIM's office against its 3 cm map: median
-        d_SE3 3.46 -> 1.31 mm (docs/registration.md, "Same-voxel correspondences"). None = the
+        d_SE3 3.46 -> 1.31 mm (docs/registration_notes.md, "Same-voxel correspondences"). None = the
         nearest centroid throughout (the earlier estimator). Semantic-ICP: a class candidate
         moves only to a centroid of its class. Not on a voxel lattice (voxel centres: see
         ``surface_radius`` and ``quantisation``)
@@ -217,7 +218,7 @@ class RegistrationConfig:
         estimate is that one direction's (no midpoint) and the direction gap is measured at
         the nearest-neighbour fixed point (:meth:`Registration._keep_nearest_fixed_point`).
         ICL-NUIM's office, a part against the map of an overlapping part, right basins:
-        median error 4.9 -> 1.8 mm, mean NEES 503 -> 5.8 (docs/registration.md, "Partial
+        median error 4.9 -> 1.8 mm, mean NEES 503 -> 5.8 (docs/registration_notes.md, "Partial
         overlaps matched by cell"). False = the nearest centroid and the midpoint there (the
         earlier estimator)
     pooled_source_covariance : in a voxel-centroid map (once same-voxel matching is on), the
@@ -228,7 +229,7 @@ class RegistrationConfig:
         plane covariance weights the parts of a cell unevenly (a table's top against the
         objects on it), and the cells' uneven weights add up over a room instead of
         averaging out. Raw half rooms against their 3 cm map (TUM fr1/rpy, ICL-NUIM office):
-        mean error 0.87 -> 0.37 mm and 0.83 -> 0.52 mm (docs/registration.md, "One
+        mean error 0.87 -> 0.37 mm and 0.83 -> 0.52 mm (docs/registration_notes.md, "One
         covariance per centroid"). A source no denser than the map is almost unchanged.
         False = each source point's own covariance (the earlier estimator)
     crossing_bias : with same-voxel matching, add the model error of the source points that
@@ -237,7 +238,7 @@ class RegistrationConfig:
         neighbouring cell's centroid, which biases a plane's fit by up to about a tenth of
         the noise, by an amount set by where the grid cuts the plane's layer, common to a
         plane parallel to the grid. ICL-NUIM's office against its 3 cm map, 12 trials:
-        mean NEES 31.7 -> 7.3 (docs/registration.md, "Cell crossings"). False = the
+        mean NEES 31.7 -> 7.3 (docs/registration_notes.md, "Cell crossings"). False = the
         point-noise sandwich alone
     map_error : with same-voxel matching (a part of a room against the room's voxel-centroid
         map), the map's representation error: the map's surfaces within each cube of edge
@@ -258,7 +259,7 @@ class RegistrationConfig:
         registration.md, "A single laser scan's map"). 0.016 since the term is added
         rather than taken as the Loewner maximum with the rest (twenty-sixth round: ten
         cells of three rooms, raw and 15k-point halves, over the grid's phases; 0.028 as the
-        maximum, 0.035 before one covariance per centroid; docs/registration.md, "The map
+        maximum, 0.035 before one covariance per centroid; docs/registration_notes.md, "The map
         term added, not its maximum"). 0.010 since the grid-phase field
         (``map_phase_error``) carries the part coherent over the whole map (twenty-seventh
         round). Empirical. None = not added (nor the grid-phase field)
@@ -274,7 +275,7 @@ class RegistrationConfig:
         axis sum coherently, tilted ones average out. Measured on raw halves of three
         real rooms over ten grid phases each, the errors follow the phase of one grid axis
         (R^2 0.8-0.9 of a sinusoid in it) far more than the independent blocks allow
-        (docs/registration.md, "The map's grid phase, coherent over the whole map").
+        (docs/registration_notes.md, "The map's grid phase, coherent over the whole map").
         0.020 with ``map_error`` 0.010: empirical. None or 0 = not added
     systematic_sigma : standard deviation (m) of an offset common to the whole source
         relative to the target that neither cloud's data can show: the two sensors' extrinsic
@@ -283,7 +284,7 @@ class RegistrationConfig:
         the estimate by u, so ``R^T diag(sigma^2) R`` is added to the covariance's
         translation block (R the estimate's rotation; the body-frame tangent). The data
         cannot tell this value: it is an input, e.g. from the sensors' specification
-        (docs/registration.md, "Errors the data cannot show"). 0 = none (default)
+        (docs/registration_notes.md, "Errors the data cannot show"). 0 = none (default)
     systematic_rotation_sigma : standard deviation (rad, per axis) of a rotation common to
         the whole source about its own frame's origin (the sensor), that the data cannot
         show either: a sensor's extrinsic rotation error. ``T' = T Exp([delta, 0])``, so
@@ -293,7 +294,7 @@ class RegistrationConfig:
         choice, mean NEES 5.3-5.9 on three sets of 30 seeds at 2 mm and 1 cm point noise
         with the fixed-association bread and alpha 2; 1.0 gave 4.6-5.3. With the re-matched
         bread and the residual-based alpha: 4.2-5.2 at 2 mm / 1 cm (~20 % pessimistic
-        pooled), 5.3-7.0 at 3 cm; not re-tuned; see docs/registration.md)
+        pooled), 5.3-7.0 at 3 cm; not re-tuned; see docs/registration_notes.md)
     """
 
     max_correspondence_distance: float = 0.3

@@ -278,7 +278,7 @@ def local_means(points: np.ndarray, tree: cKDTree, radius: float, min_points: in
     surface. On a voxel-centre cloud (an octree map) a radius of sqrt(3) times the resolution
     averages the occupied voxels of the 3x3x3 block around each centre, which removes the
     +-half-voxel quantisation that nearest-neighbour matching otherwise turns into a pose bias
-    (docs/registration.md).
+    (docs/registration_notes.md).
     """
     points = np.ascontiguousarray(points, dtype=float).reshape(-1, 3)
     query = points if rows is None else points[rows]
@@ -474,7 +474,7 @@ def looks_voxelised(points: np.ndarray, tree: cKDTree | None = None) -> bool:
     """True where ``points`` look like a voxel map (centroids or centres) of some pitch: the
     first two stages of :func:`voxel_grid` (a sample of 600 points) find a resultant of at
     least ``VOXELISED_RESULTANT`` (a raw scan's stays near the sample's noise, 0.05-0.09 on
-    the real rooms and their parts; voxelised scans 0.16-0.63, docs/registration.md).
+    the real rooms and their parts; voxelised scans 0.16-0.63, docs/registration_notes.md).
     About 5 ms, whatever the cloud's size."""
     sample = grid_sample(points, tree)
     return sample is not None and sample.resultant >= VOXELISED_RESULTANT

@@ -3,7 +3,7 @@ sandwich's pieces (cluster sums, the bread's limits, the inverse with unconstrai
 directions) and the model-error information of voxel maps (a lattice's quantisation, tilted
 planes, the in-plane phase, a centroid map's cell crossings and grid-phase field).
 
-The derivations and the measurements behind each constant are in docs/registration.md
+The derivations and the measurements behind each constant are in docs/registration_notes.md
 ("Model error: a voxel map's quantisation" and the sections after it).
 """
 from __future__ import annotations
@@ -42,7 +42,7 @@ def plane_groups(normals: np.ndarray, points: np.ndarray, thickness: float
 # A slab group is a plane tilted against the lattice (no common quantisation offset) when
 # its matched lattice points' layer coordinate follows a planar trend (R^2 at least
 # TILT_MIN_R2) across at least TILT_MIN_LAYERS layers, through contiguous layers (each kept
-# layer holding LAYER_MIN_SHARE of the group): docs/registration.md, "Tilted planes"
+# layer holding LAYER_MIN_SHARE of the group): docs/registration_notes.md, "Tilted planes"
 TILT_MIN_R2 = 0.3
 TILT_MIN_LAYERS = 1.0
 LAYER_MIN_SHARE = 0.05
@@ -132,7 +132,7 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
     tilted against the lattice (:func:`tilted_groups`) get no common offset: such a plane
     crosses layers along itself, so its quantisation offset is a sawtooth along the plane.
     Without ``centres`` every slab counts (for tilted planes an upper bound: pessimistic;
-    docs/registration.md). With ``noise`` (m, not None) too, what of the sawtooth is common
+    docs/registration_notes.md). With ``noise`` (m, not None) too, what of the sawtooth is common
     to the plane is added (:func:`sawtooth_information`): on a dense map it averages out
     along the plane, on a sparse one (a single laser scan) it does not.
 
@@ -143,7 +143,7 @@ def quantisation_information(normals: np.ndarray, points: np.ndarray, sensitivit
     extent of a uniform spread with the group's variance along that axis): the score sums
     gain ``sum_p sum_a var_pa t_pa t_pa^T``, ``t_pa = sum_{k in p} sign_k (x_ka - mean_a)
     sensitivity_k``. (ICL-NUIM's floor lies 2.1 mrad off its lattice plane and the 3 cm
-    lattice map keeps it flat: docs/registration.md, "Lattice maps of real rooms".)
+    lattice map keeps it flat: docs/registration_notes.md, "Lattice maps of real rooms".)
 
     ``inplane`` (the pairs' Jacobians (M, 3, 6), whitening U^T (M, 3, 3) and weights (M,)):
     each slab's offsets along its in-plane lattice axes too (:func:`inplane_information`).
@@ -285,7 +285,7 @@ def sawtooth_information(group: np.ndarray, members: np.ndarray, sign: np.ndarra
     return pitch ** 2 * info
 
 
-# Cell crossings of same-voxel matching (docs/registration.md, "Cell crossings"): a cell
+# Cell crossings of same-voxel matching (docs/registration_notes.md, "Cell crossings"): a cell
 # holds a layer's points where it gets at least CROSSING_OCCUPIED of them (a 3 cm cell of a
 # plane sampled every 5 mm gets about 36); fewer than MIN_CROSSING_PAIRS pairs within
 # voxel_matching of a grid axis get no term

@@ -100,7 +100,7 @@ MIN_LABEL_NOISE = 1e-3
 # of its class up to the stage's d_max away; on the ICL-NUIM office's raw halves (10 % wrong
 # labels) that left the annealing 0.9-1.0 mm off along the room's weakly constrained axis, and
 # the final stage's cost is too flat there to bring it back: mean error along it 0.92 ->
-# 0.44 mm (GICP-SE(3) 0.44), mean NEES 43.8 -> 20.0 over four starts (docs/registration.md,
+# 0.44 mm (GICP-SE(3) 0.44), mean NEES 43.8 -> 20.0 over four starts (docs/registration_notes.md,
 # "Semantic-ICP's last annealing stage settles with the posterior", twenty-third round)
 SETTLE_WITH_POSTERIOR = True
 # The settle stops at a Gauss-Newton step shorter than this many standard deviations of the
@@ -226,7 +226,7 @@ class _Beside:
 # surfaces within PARTIAL_CELL_ANGLE of a grid axis, their layers at least
 # PARTIAL_CELL_THICKNESS pitches thick. The cells remove that aliasing, and the estimate loses
 # the midpoint of the two directions, which takes out the matching's asymmetry. Measured at
-# the nearest-neighbour fixed point (docs/registration.md, "Partial overlaps matched by
+# the nearest-neighbour fixed point (docs/registration_notes.md, "Partial overlaps matched by
 # cell"): the parts of ICL-NUIM's office (a CAD room in its grid's axes) share 0.54-0.71 in
 # the right basins, thickness 0.15-0.22, paired error 0.35x and mean NEES 503 -> 5.8 with the
 # cells; the TUM room's 0.09-0.18 (at 10 deg 0.30-0.35: with the cells there, paired error
@@ -276,7 +276,7 @@ EXTRAPOLATE_MAX = 4.0  # at most four more steps at once
 # direction times rho / (1 - rho); otherwise the creep is extrapolated and the stage goes on
 # (False: the step alone decides). A raw half of ICL-NUIM's office crept along its weakly
 # held axis with rho 0.91-0.95 and stopped 1.1 mm short of its fixed point (twenty-fourth
-# round, docs/registration.md, "The creep's remainder")
+# round, docs/registration_notes.md, "The creep's remainder")
 CONVERGE_ON_REMAINDER = True
 # the creep the remainder is measured on: two steps within about 26 deg (a Semantic-ICP
 # creep's direction wobbles more than EXTRAPOLATE_COSINE allows, the posterior's weights
@@ -299,14 +299,14 @@ WIDE_FINAL_STAGE = True
 # trusted, and a result that has not converged is not. On the real office's 15k-point halves
 # the rescued starts converged within 15 final iterations (5 of 40 starts, small and wide
 # offsets), and the second starts that ran longer all ended untrusted, 5 of them after all
-# 150 (0.95-1.5 m off; docs/registration.md, "The second start's final stage")
+# 150 (0.95-1.5 m off; docs/registration_notes.md, "The second start's final stage")
 RESCUE_FINAL_ITERATIONS = 60
 # a start at the final d_max (no annealing: RegistrationConfig's defaults, the CLI without
 # --initial-corr) of a source with a coarse subset (coarse_points) first aligns that subset
 # at the final d_max, as an annealing stage would, then every point (the same fixed point:
 # the final stage converges on all points; False: every point from the first iteration,
 # each of whose first steps re-queries every point). Real room halves 5 cm / 2 deg off:
-# 15k points 0.39-0.51 -> 0.26-0.35 s, raw halves 4.4-6.4 -> 2.3-2.8 s; docs/registration.md,
+# 15k points 0.39-0.51 -> 0.26-0.35 s, raw halves 4.4-6.4 -> 2.3-2.8 s; docs/registration_notes.md,
 # "A coarse first stage"
 COARSE_FIRST = True
 # ... and that stage ends after its first step where that step is below this (rad and m): a
@@ -321,7 +321,7 @@ REASSOCIATION_ROWS = 30000
 # the re-matched bread's eigenvalues relative to A are limited to [REASSOCIATION_FLOOR, 1]:
 # at most 100x the fixed-association variance along a direction. 0.25 (16x) held the real
 # rooms' flattest directions back (ICL-NUIM, 15k-point halves: 3 of 30 starts at 0.12-0.19,
-# NEES 23-33; docs/registration.md, "The re-matched bread's floor"); 0.1 and 0.05 gave the
+# NEES 23-33; docs/registration_notes.md, "The re-matched bread's floor"); 0.1 and 0.05 gave the
 # same NEES there, and the i.i.d. scenes never reach 0.25
 REASSOCIATION_FLOOR = 0.1
 # the symmetric estimate's uses of the breads keep the earlier floor: the reverse direction's
@@ -351,7 +351,7 @@ PREFETCH_ROWS = 256
 # room's dominant surfaces, along which the coarse stage can slide into another basin (ICL-NUIM
 # office, 15k-point halves from 0.2 m / 8 deg: 4 of 30 starts, which Open3D GICP missed too);
 # a subset spread over the normals alone lost the dominant surfaces' pull that a wide start
-# needs (simulated rooms from 1 m / 40 deg: 4 of 64 more starts missed). docs/registration.md,
+# needs (simulated rooms from 1 m / 40 deg: 4 of 64 more starts missed). docs/registration_notes.md,
 # "Normal-space sampling"
 NORMAL_SPACE_SAMPLING = True
 NORMAL_SPACE_POOL = 4
@@ -850,7 +850,7 @@ class Registration:
         """Return (the model terms' score covariance, crossing rms or None, map_error or None)
         of a source matched by cell in a voxel-centroid map (zeros and None where switched
         off). The two terms are independent of each other and of the point noise, so their
-        score covariances add (the map term's: docs/registration.md, "The map term added,
+        score covariances add (the map term's: docs/registration_notes.md, "The map term added,
         not its maximum"; the sandwich's meat holds little of the map's error)."""
         cfg = self.config
         B, crossing, map_error = np.zeros((6, 6)), None, None
@@ -1435,7 +1435,7 @@ class Registration:
             lattice_coverage = _Beside(self.coverage, T, block)
         # a part of a map registered to that map (no lattice term): trusted only with the
         # map's representation error in the covariance (map_error) and every point on the
-        # map's surfaces (INSIDE_TRUSTED_COVERAGE; docs/registration.md, "Real rooms")
+        # map's surfaces (INSIDE_TRUSTED_COVERAGE; docs/registration_notes.md, "Real rooms")
         inside = source_inside_target(*overlap)
         if inside:
             reverse = None  # the forward estimate is kept (a reverse started ends early)
@@ -1724,7 +1724,7 @@ class Registration:
         Off-surface share: of the sampled source points within two of the overlap's radii of
         a target point, the share not within one. In the right basin a source point lies on a
         surface the target sampled too or beyond what the target covers; in another basin
-        part of it lies beside the target's surfaces (docs/registration.md, "Off the
+        part of it lies beside the target's surfaces (docs/registration_notes.md, "Off the
         surfaces"). NaN where no source point is that near.
         """
         if self._source_block is None:
@@ -1786,7 +1786,7 @@ class Registration:
 
         Nearest-neighbour matching is not symmetric: on real scans the estimate moves when
         source and target swap roles, by an error every split of a scan repeats (a bias of
-        the matching, docs/registration.md). The target is registered to the source from
+        the matching, docs/registration_notes.md). The target is registered to the source from
         the forward solution (:meth:`reverse_terms`), and the reported pose is the midpoint
         of the two estimates, ``T Exp(delta / 2)`` with ``delta = Logmap(T^-1 T_rev^-1)``.
         Its covariance is the sandwich of the two stacked estimating equations: both
@@ -1976,7 +1976,7 @@ INSIDE_TRUSTED_COVERAGE = 0.995
 
 # The map term's offsets are map_error pitches where the map's surface is MAP_ERROR_THICKNESS
 # pitches thick (its local layer's standard deviation; the RGB-D rooms' 3 cm centroid maps:
-# median 0.42-0.56), proportionally less or more elsewhere (docs/registration.md, "A single
+# median 0.42-0.56), proportionally less or more elsewhere (docs/registration_notes.md, "A single
 # laser scan's map")
 MAP_ERROR_THICKNESS = 0.5
 
@@ -1992,7 +1992,7 @@ def source_inside_target(source_covered: float, target_covered: float) -> bool:
     forward matching has no such boundary, but the reverse has (the target's points just
     beyond the source's edge): the midpoint would add that bias (real RGB-D rooms against
     their 3 cm voxel map: mean NEES 33 against 6.3, 2.2 mm against 0.8 mm error;
-    docs/registration.md), so the forward estimate is kept.
+    docs/registration_notes.md), so the forward estimate is kept.
     """
     return (source_covered >= INSIDE_COVERAGE
             and target_covered <= source_covered - INSIDE_MARGIN)

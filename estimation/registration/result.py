@@ -14,7 +14,7 @@ from .factors import shift_sensitivities
 
 @dataclass(frozen=True)
 class CovarianceDiagnostic:
-    """How far the reported covariance can be trusted (see docs/registration.md).
+    """How far the reported covariance can be trusted (see docs/registration_notes.md).
 
     Attributes
     ----------
@@ -36,7 +36,7 @@ class CovarianceDiagnostic:
         statistic shows: measured mean NEES 11.5 on a real Kinect room and 414 on ICL-NUIM's
         office with the nearest centroid, 9.2 and 32 with ``voxel_matching``, 7.7 and 8.6
         (30 trials, band [4.8, 7.3]) with ``crossing_bias``, 5.1 and 6.7 with ``map_error``
-        (docs/registration.md, "Real rooms", "Where the room gap comes from", "Cell
+        (docs/registration_notes.md, "Real rooms", "Where the room gap comes from", "Cell
         crossings", "The map's representation error"). A converged run in another basin has
         no second direction to contradict it there, but leaves 1-2 % of its points off the
         map's surfaces (coverage 1.000 in the right basin, 0.983-0.989 in two wrong ones)

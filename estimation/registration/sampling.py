@@ -2,7 +2,7 @@
 spread evenly over the directions of the surface normals, read off the GICP covariances.
 
 Used by :meth:`.gicp.Registration._coarse_rows` (``NORMAL_SPACE_SAMPLING``); why and what it
-changed: docs/registration.md, "Normal-space sampling of the coarse subset".
+changed: docs/registration_notes.md, "Normal-space sampling of the coarse subset".
 """
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 # the hemisphere of normal directions (n and -n are one) in NORMAL_BINS[0] bands of equal
 # n_z, each in NORMAL_BINS[1] sectors of equal azimuth: 32 bins of equal area (a cube map's
 # 27 bins, without the pole, kept 3 of the 5 starts these bins rescue on the ICL-NUIM office:
-# docs/registration.md, "Normal-space sampling of the coarse subset")
+# docs/registration_notes.md, "Normal-space sampling of the coarse subset")
 NORMAL_BINS = (4, 8)
 
 
