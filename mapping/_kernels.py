@@ -11,6 +11,15 @@ block 0 holds the root). Freed blocks go on a stack ``free_blocks`` and are reus
 
 Everything that decides a log-odds value or a key follows liboctomap 1.9.7's float/double mix
 (../shared/formats/OCTOMAP.md sections 0, 4, 5) so that the maps are bit-identical.
+
+Sections, in order: Morton codes, keys, the ray DDA, per-scan key sets (marking), tree updates,
+traversal, whole-tree passes, queries, file payloads. They stay in one file although it is
+long: the marking, the updates and the queries inline helpers of earlier sections, and
+numba's on-disk cache (``cache=True``, the JIT path) is invalidated only by its own file's
+timestamp. It does not see a change to a function defined in another file, nor to a global
+(numba's developer notes, "Notes on Caching", cache limitations). Split into files, an edited
+key helper would leave the JIT running the marking compiled with the old one. The compiled
+module (estimation/aot.py) would be rebuilt, since it hashes this file.
 """
 from __future__ import annotations
 
